@@ -1,0 +1,43 @@
+# Set-up and entry points. `make test` and `make demo` bootstrap everything they need on a fresh
+# Debian machine: libLLVM >= 16 for Mitsuba's LLVM backend (when root), a .venv, the CPU build of
+# torch, then the project itself. Each step is skipped when already done, so reruns take seconds.
+PYTHON ?= python3
+VENV := .venv
+PY := $(VENV)/bin/python
+TORCH_VERSION := 2.13.0
+STAMP := $(VENV)/.installed
+
+.PHONY: test demo evaluate bootstrap llvm clean
+
+test: bootstrap
+	$(PY) -m pytest -q
+
+demo: bootstrap
+	$(VENV)/bin/render-and-denoise scenes/examples/demo.xml --spp 16 --reference-spp 512 --out demo-output
+
+evaluate: bootstrap
+	$(PY) benchmarks/evaluate.py
+
+bootstrap: llvm $(STAMP)
+
+# Mitsuba 3.9.1's LLVM variants abort with LLVM 14/15; install Debian's libllvm19 when we can.
+llvm:
+	@if ls /usr/lib/*-linux-gnu/libLLVM-1[6-9].so* /usr/lib/*-linux-gnu/libLLVM-[2-9][0-9].so* \
+	      /usr/lib/*-linux-gnu/libLLVM.so.1[6-9]* /usr/lib/*-linux-gnu/libLLVM.so.[2-9][0-9]* \
+	      >/dev/null 2>&1; then :; \
+	elif [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+	  echo "installing libllvm19 (Mitsuba's LLVM backend needs LLVM >= 16)"; \
+	  (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libllvm19 >/dev/null) \
+	    || echo "warning: could not install libllvm19; Mitsuba will use the slow scalar_rgb variant"; \
+	else echo "warning: no libLLVM >= 16 and no root apt-get; Mitsuba will use the slow scalar_rgb variant"; fi
+
+$(VENV)/bin/python:
+	$(PYTHON) -m venv $(VENV)
+
+$(STAMP): pyproject.toml | $(VENV)/bin/python
+	$(PY) -m pip install -q --disable-pip-version-check torch==$(TORCH_VERSION)
+	$(PY) -m pip install -q --disable-pip-version-check -e '.[dev,oidn]'
+	touch $(STAMP)
+
+clean:
+	rm -rf $(VENV) *.egg-info

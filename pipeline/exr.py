@@ -1,0 +1,112 @@
+"""OpenEXR reading and writing: RGB plus named 3-channel layers, with metadata.
+
+Layout: images are HxWx3 float32 (linear radiance for RGB). Extra layers are stored as
+``<layer>.R/G/B`` (or ``.X/Y/Z`` for normals), e.g. ``albedo.R``, ``normal.X``. Metadata values
+(str, int or float) go into the EXR header under their own names.
+"""
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import OpenEXR
+
+from pipeline.atomic_io import atomic_path
+from pipeline.errors import ExrError
+
+XYZ_LAYERS = ("normal", "sh_normal", "nrm")
+_STANDARD_KEYS = {"channels", "compression", "dataWindow", "displayWindow", "lineOrder",
+                  "pixelAspectRatio", "screenWindowCenter", "screenWindowWidth", "type"}
+
+
+@dataclass
+class ExrImage:
+    """``rgb``: HxWx3 float32; ``layers``: name -> HxWx3 float32; ``metadata``: header extras."""
+
+    rgb: np.ndarray
+    layers: dict[str, np.ndarray] = field(default_factory=dict)
+    metadata: dict[str, str | int | float] = field(default_factory=dict)
+
+
+def layer_suffixes(layer: str) -> tuple[str, str, str]:
+    """Channel suffixes of an extra layer: X/Y/Z for normals, R/G/B otherwise."""
+    return ("X", "Y", "Z") if layer in XYZ_LAYERS else ("R", "G", "B")
+
+
+def _check_image(name: str, img: np.ndarray, shape: tuple[int, ...] | None) -> np.ndarray:
+    img = np.asarray(img)
+    if img.ndim != 3 or img.shape[2] != 3:
+        raise ExrError(f"{name}: expected an HxWx3 array, got shape {img.shape}")
+    if shape is not None and img.shape != shape:
+        raise ExrError(f"{name}: shape {img.shape} differs from RGB {shape}")
+    return img
+
+
+def write_exr(
+    path: str | Path,
+    rgb: np.ndarray,
+    layers: Mapping[str, np.ndarray] | None = None,
+    metadata: Mapping[str, str | int | float] | None = None,
+    half: bool = False,
+) -> None:
+    """Write an EXR atomically (ZIP compression), float32 or, with ``half``, float16 pixels."""
+    path = Path(path)
+    rgb = _check_image("RGB", rgb, None)
+    dtype = np.float16 if half else np.float32
+    channels: dict[str, np.ndarray] = {}
+    for c, suffix in enumerate("RGB"):
+        channels[suffix] = np.ascontiguousarray(rgb[:, :, c], dtype=dtype)
+    for layer, img in (layers or {}).items():
+        img = _check_image(layer, img, rgb.shape)
+        for c, suffix in enumerate(layer_suffixes(layer)):
+            channels[f"{layer}.{suffix}"] = np.ascontiguousarray(img[:, :, c], dtype=dtype)
+    header: dict[str, object] = {"compression": OpenEXR.ZIP_COMPRESSION}
+    for key, value in (metadata or {}).items():
+        if key in _STANDARD_KEYS or not isinstance(value, (str, int, float)) or isinstance(value, bool):
+            raise ExrError(f"{path}: metadata {key!r} must be a non-reserved str/int/float")
+        header[key] = value
+    if not path.parent.is_dir():
+        raise ExrError(f"{path}: output folder does not exist")
+    try:
+        with atomic_path(path) as tmp, OpenEXR.File(header, channels) as exr:
+            exr.write(str(tmp))
+    except OSError as exc:
+        raise ExrError(f"{path}: cannot write ({exc.strerror or exc})") from None
+    except RuntimeError as exc:
+        raise ExrError(f"{path}: cannot write ({str(exc).splitlines()[0]})") from None
+
+
+def read_exr(path: str | Path) -> ExrImage:
+    """Read an EXR with R, G, B channels (float16 or float32) into float32 arrays.
+
+    Raises :class:`ExrError` for a missing, truncated or non-EXR file, or one without RGB.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise ExrError(f"{path}: file not found")
+    if path.is_dir():
+        raise ExrError(f"{path}: is a directory, not an EXR file")
+    with open(path, "rb") as fh:
+        if fh.read(4) != b"\x76\x2f\x31\x01":
+            raise ExrError(f"{path}: not an OpenEXR file")
+    try:
+        with OpenEXR.File(str(path), separate_channels=True) as exr:
+            header = dict(exr.header())
+            channels = {k: np.array(v.pixels) for k, v in exr.channels().items()}
+    except (RuntimeError, ValueError, OSError) as exc:
+        raise ExrError(f"{path}: truncated or corrupt EXR ({str(exc).splitlines()[0]})") from None
+    missing = [c for c in "RGB" if c not in channels]
+    if missing:
+        raise ExrError(f"{path}: has no {'/'.join(missing)} channel(s) (found: "
+                       f"{', '.join(sorted(channels)) or 'none'})")
+    rgb = np.stack([channels[c] for c in "RGB"], axis=-1).astype(np.float32)
+    layers: dict[str, np.ndarray] = {}
+    for name in sorted({k.rsplit(".", 1)[0] for k in channels if "." in k}):
+        keys = [f"{name}.{s}" for s in layer_suffixes(name)]
+        if all(k in channels for k in keys):
+            layers[name] = np.stack([channels[k] for k in keys], axis=-1).astype(np.float32)
+    metadata = {k: v for k, v in header.items()
+                if k not in _STANDARD_KEYS and isinstance(v, (str, int, float))}
+    return ExrImage(rgb=rgb, layers=layers, metadata=metadata)
