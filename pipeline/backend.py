@@ -110,6 +110,20 @@ def find_libllvm(
     return LLVMChoice(None, None, f"no libLLVM >= {MIN_LLVM_MAJOR} found (apt-get install libllvm19)")
 
 
+def resolve_variant(wanted: str, choice: LLVMChoice | None = None) -> tuple[str, str | None]:
+    """Decide the variant for ``wanted`` given an LLVM lookup result (pure; no Mitsuba import).
+
+    Returns ``(variant, warning)``: an ``llvm_*`` request without a usable libLLVM becomes
+    ``scalar_rgb`` with a one-line warning; anything else is returned unchanged.
+    """
+    if not wanted.startswith("llvm_"):
+        return wanted, None
+    choice = find_libllvm() if choice is None else choice
+    if choice.path is None:
+        return SCALAR_VARIANT, f"Mitsuba falls back to {SCALAR_VARIANT} (slow): {choice.reason}"
+    return wanted, None
+
+
 _selected: str | None = None
 
 
@@ -123,21 +137,15 @@ def select_variant(prefer: str | None = None) -> str:
     global _selected
     if _selected is not None:
         return _selected
-    import mitsuba as mi  # imported here: DRJIT_LIBLLVM_PATH must be set first
-
     wanted = prefer or os.environ.get("DENOISER_MI_VARIANT") or LLVM_VARIANT
-    variant = wanted
-    if wanted.startswith("llvm_"):
-        choice = find_libllvm()
-        if choice.path is None:
-            warnings.warn(
-                f"Mitsuba falls back to {SCALAR_VARIANT} (slow): {choice.reason}",
-                BackendWarning,
-                stacklevel=2,
-            )
-            variant = SCALAR_VARIANT
-        else:
-            os.environ["DRJIT_LIBLLVM_PATH"] = choice.path
+    choice = find_libllvm() if wanted.startswith("llvm_") else None
+    variant, warning = resolve_variant(wanted, choice)
+    if warning:
+        warnings.warn(warning, BackendWarning, stacklevel=2)
+    elif choice is not None and choice.path is not None:
+        os.environ["DRJIT_LIBLLVM_PATH"] = choice.path  # read by Dr.Jit when the variant is set
+    import mitsuba as mi  # imported only now: DRJIT_LIBLLVM_PATH must be set first
+
     mi.set_variant(variant)
     _selected = variant
     return variant

@@ -54,7 +54,7 @@ def load_scene(prepared: PreparedScene) -> Any:
     select_variant()
     import mitsuba as mi
 
-    resolver = mi.Thread.thread().file_resolver()
+    resolver = mi.file_resolver()
     saved = [str(p) for p in resolver]
     try:
         for path in reversed(prepared.search_paths):
@@ -103,6 +103,14 @@ def prepare(
     return prepare_xml(scene, resolution, aovs, params)
 
 
+def sanitize_nonfinite(img: np.ndarray) -> tuple[np.ndarray, int]:
+    """Replace NaN/Inf values of an HxWxC image by 0; return it and the count of bad pixels."""
+    img = np.array(img, dtype=np.float32, copy=True)
+    bad = ~np.isfinite(img)
+    img[bad] = 0.0
+    return img, int(bad.any(axis=2).sum())
+
+
 def pass_seeds(seed: int, passes: int) -> list[int]:
     """Seeds of the passes of one render: pass 0 uses ``seed``, later ones a 32-bit mix of it."""
     seeds = [seed]
@@ -143,10 +151,7 @@ def render_loaded(
     expected = 3 + 3 * len(aovs)
     if acc.shape[2] != expected:
         raise RenderError(f"render returned {acc.shape[2]} channels, expected {expected}")
-    data = acc.astype(np.float32)
-    bad = ~np.isfinite(data)
-    nonfinite = int(bad.any(axis=2).sum())
-    data[bad] = 0.0
+    data, nonfinite = sanitize_nonfinite(acc.astype(np.float32))
     out_aovs = {name: data[:, :, 3 + 3 * i: 6 + 3 * i] for i, name in enumerate(aovs)}
     return RenderResult(rgb=np.ascontiguousarray(data[:, :, :3]), aovs=out_aovs, spp=spp, seed=seed,
                         nonfinite=nonfinite, seconds=seconds, variant=mi.variant())

@@ -7,7 +7,6 @@ pixels' noise, which a denoiser then cannot remove. Scene files often keep the f
 """
 from __future__ import annotations
 
-import copy
 import re
 import xml.etree.ElementTree as ET
 from collections.abc import Mapping, Sequence
@@ -185,6 +184,15 @@ def _box_film(film: dict[str, Any] | None, resolution: tuple[int, int] | None) -
     return film
 
 
+def _copy_dicts(value: Any) -> Any:
+    """Copy the nested dicts (and lists) of a scene dict; plugin objects/transforms are shared."""
+    if isinstance(value, Mapping):
+        return {k: _copy_dicts(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_copy_dicts(v) for v in value]
+    return value
+
+
 def prepare_dict(
     scene: Mapping[str, Any],
     resolution: tuple[int, int] | None = None,
@@ -197,7 +205,7 @@ def prepare_dict(
     Relative asset file names in the dict resolve against ``base_dir`` when given.
     """
     _check_aovs(aovs)
-    d = copy.deepcopy(dict(scene))
+    d = _copy_dicts(scene)
     sensors = [k for k, v in d.items() if isinstance(v, dict) and v.get("type") in SENSOR_TYPES]
     if not sensors:
         raise SceneError(f"{source}: the scene has no sensor (a camera is required)")
