@@ -1,13 +1,102 @@
-"""Command-line entry point `generate-dataset`."""
+"""``generate-dataset``: render procedural scenes at several spp plus references.
+
+Example: ``generate-dataset --scenes 200 --out data/train --res 128 --spp 4,16,64,128 --ref-spp 4096``
+"""
 from __future__ import annotations
 
+import argparse
 import sys
+
+from tqdm import tqdm
+
+from dataset_gen.config import DatasetConfig
+from dataset_gen.generate import generate_dataset
+from pipeline.errors import DenoiserError
+
+
+def _int_list(text: str) -> tuple[int, ...]:
+    try:
+        values = tuple(int(v) for v in text.split(",") if v.strip())
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}") from None
+    if not values or min(values) < 1:
+        raise argparse.ArgumentTypeError(f"expected positive integers, got {text!r}")
+    return values
+
+
+def _resolution(text: str) -> tuple[int, int]:
+    parts = text.lower().split("x")
+    try:
+        w, h = (int(parts[0]), int(parts[0])) if len(parts) == 1 else (int(parts[0]), int(parts[1]))
+    except (ValueError, IndexError):
+        raise argparse.ArgumentTypeError(f"expected N or WxH, got {text!r}") from None
+    if w < 1 or h < 1:
+        raise argparse.ArgumentTypeError(f"resolution must be positive, got {text!r}")
+    return w, h
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from scenes.registry import FAMILIES
+
+    p = argparse.ArgumentParser(prog="generate-dataset", description=__doc__.split("\n")[0])
+    p.add_argument("--scenes", type=int, required=True, help="number of scenes (indices 0..N-1)")
+    p.add_argument("--out", required=True, help="dataset folder (created; resumed if it exists)")
+    p.add_argument("--families", type=lambda s: tuple(f for f in s.split(",") if f),
+                   default=tuple(FAMILIES), help=f"comma-separated subset of: {', '.join(FAMILIES)}")
+    p.add_argument("--spp", type=_int_list, default=(4, 16, 64, 128), help="noisy sample counts")
+    p.add_argument("--ref-spp", type=int, default=4096, help="reference samples (two halves)")
+    p.add_argument("--res", type=_resolution, default=(128, 128), help="N or WxH pixels")
+    p.add_argument("--seed", type=int, default=0, help="dataset seed (scene i depends on seed, i)")
+    p.add_argument("--val-fraction", type=float, default=0.1, help="share of scenes in split 'val'")
+    p.add_argument("--aovs", type=lambda s: tuple(a for a in s.split(",") if a), default=(),
+                   help="also write noisy albedo/normal buffers: alb,nrm")
+    p.add_argument("--workers", type=int, default=1,
+                   help="parallel scene jobs (1 = Mitsuba uses all cores per render; measured fastest)")
+    p.add_argument("--preview", action="store_true", help="write preview.png, a contact sheet")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    return p
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Not yet available: exits with a clear message until issue #3 lands."""
-    print("generate-dataset: not implemented yet (issue #3)", file=sys.stderr)
-    return 2
+    args = build_parser().parse_args(argv)
+    from pathlib import Path
+
+    from scenes.registry import FAMILIES
+
+    unknown = [f for f in args.families if f not in FAMILIES]
+    if unknown:
+        print(f"generate-dataset: unknown family {unknown[0]!r} (known: {', '.join(FAMILIES)})",
+              file=sys.stderr)
+        return 2
+    cfg = DatasetConfig(res=args.res, spp=args.spp, ref_spp=args.ref_spp, families=args.families,
+                        seed=args.seed, aovs=args.aovs, val_fraction=args.val_fraction)
+    out = Path(args.out)
+
+    def bar(total: int) -> tqdm:
+        return tqdm(total=total, unit="scene", disable=args.quiet, dynamic_ncols=True)
+
+    try:
+        summary = generate_dataset(out, cfg, args.scenes, args.workers, bar)
+        if args.preview:
+            from dataset_gen.manifest import read_records
+            from dataset_gen.preview import contact_sheet
+
+            print(f"preview: {contact_sheet(out, read_records(out))}")
+    except (DenoiserError, ValueError, OSError) as exc:
+        print(f"generate-dataset: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("generate-dataset: interrupted; re-run the same command to resume", file=sys.stderr)
+        return 130
+    rate = 3600 * summary.done / summary.wall_s if summary.wall_s else 0.0
+    print(f"{out}: {summary.done} scenes rendered, {summary.skipped} already there, "
+          f"{len(summary.failed)} failed; {summary.wall_s:.1f} s wall ({rate:.0f} scenes/h), "
+          f"Mitsuba render {summary.render_s:.1f} s, overhead {100 * summary.overhead():.1f}%")
+    if summary.failed:
+        print(f"generate-dataset: {len(summary.failed)} scene(s) failed, first: {summary.failed[0]}; "
+              "re-run to retry", file=sys.stderr)
+        return 1
+    return 0
 
 
 if __name__ == "__main__":

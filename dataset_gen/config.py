@@ -1,0 +1,109 @@
+"""The dataset's own configuration: how its images were rendered, saved as DIR/dataset.json.
+
+Data carries its config: re-running ``generate-dataset`` into an existing folder with different
+render settings is refused, and training can check what it reads. The scene count is not part of
+the settings: a dataset can grow.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+
+from pipeline.atomic_io import write_text_atomic
+from pipeline.errors import DenoiserError
+
+CONFIG_NAME = "dataset.json"
+FORMAT_VERSION = 1
+
+
+class DatasetError(DenoiserError):
+    """A dataset folder cannot be used (other settings, unreadable config, bad manifest...)."""
+
+
+@dataclass(frozen=True)
+class DatasetConfig:
+    """Render settings of a dataset. ``res`` is [width, height] in pixels; ``spp`` the noisy
+    sample counts; ``ref_spp`` the reference's (rendered as two halves); ``aovs`` extra buffers
+    rendered with each noisy image ("alb", "nrm"); ``val_fraction`` of scenes go to split "val"."""
+
+    res: tuple[int, int] = (128, 128)
+    spp: tuple[int, ...] = (4, 16, 64, 128)
+    ref_spp: int = 4096
+    families: tuple[str, ...] = ()
+    seed: int = 0
+    aovs: tuple[str, ...] = ()
+    val_fraction: float = 0.1
+    filter: str = "box"
+    version: int = FORMAT_VERSION
+    mitsuba: str = ""
+    variant: str = ""
+    extra: dict[str, str] = field(default_factory=dict)
+
+    def validate(self) -> None:
+        if len(self.res) != 2 or min(self.res) < 1:
+            raise DatasetError(f"resolution must be two positive integers, got {self.res}")
+        if not self.spp or min(self.spp) < 1 or len(set(self.spp)) != len(self.spp):
+            raise DatasetError(f"noisy spp must be distinct positive integers, got {self.spp}")
+        if self.ref_spp < 2 or self.ref_spp % 2:
+            raise DatasetError(f"reference spp must be even and >= 2 (two halves), got {self.ref_spp}")
+        if not 0.0 <= self.val_fraction < 1.0:
+            raise DatasetError(f"val fraction must be in [0, 1), got {self.val_fraction}")
+        if not self.families:
+            raise DatasetError("no scene families selected")
+        bad = [a for a in self.aovs if a not in ("alb", "nrm")]
+        if bad:
+            raise DatasetError(f"unknown AOV {bad[0]!r} (known: alb, nrm)")
+
+    def to_json(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_json(cls, data: dict) -> "DatasetConfig":
+        names = {f.name for f in fields(cls)}
+        unknown = set(data) - names
+        if unknown:
+            raise DatasetError(f"{CONFIG_NAME}: unknown keys {sorted(unknown)}")
+        tuples = {k: tuple(v) for k, v in data.items() if isinstance(v, list)}
+        return cls(**{**data, **tuples})
+
+
+def settings_diff(a: DatasetConfig, b: DatasetConfig) -> list[str]:
+    """Human-readable differences in render settings (``extra`` and versions excluded)."""
+    skip = {"extra", "mitsuba", "variant"}
+    return [f"{f.name}: {getattr(a, f.name)} vs {getattr(b, f.name)}"
+            for f in fields(DatasetConfig)
+            if f.name not in skip and getattr(a, f.name) != getattr(b, f.name)]
+
+
+def load_config(folder: Path) -> DatasetConfig | None:
+    """The config saved in ``folder``, or None if the folder has none yet."""
+    path = folder / CONFIG_NAME
+    if not path.exists():
+        return None
+    try:
+        return DatasetConfig.from_json(json.loads(path.read_text()))
+    except (json.JSONDecodeError, TypeError, UnicodeDecodeError) as exc:
+        raise DatasetError(f"{path}: unreadable dataset config ({exc})") from None
+
+
+def open_dataset(folder: Path, wanted: DatasetConfig) -> DatasetConfig:
+    """Create ``folder`` with ``wanted`` settings, or check an existing one has the same."""
+    wanted.validate()
+    if folder.exists() and not folder.is_dir():
+        raise DatasetError(f"{folder}: exists and is not a directory")
+    existing = load_config(folder) if folder.exists() else None
+    if existing is not None:
+        diff = settings_diff(existing, wanted)
+        if diff:
+            raise DatasetError(f"{folder}: dataset was generated with other settings "
+                               f"({'; '.join(diff)}); use another --out folder")
+        return existing
+    if folder.exists() and any(p.name in ("manifest.jsonl", "images") for p in folder.iterdir()):
+        raise DatasetError(f"{folder}: holds dataset files but no {CONFIG_NAME}; refusing to mix")
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        write_text_atomic(folder / CONFIG_NAME, json.dumps(wanted.to_json(), indent=1) + "\n")
+    except OSError as exc:
+        raise DatasetError(f"{folder}: cannot write ({exc.strerror or exc})") from None
+    return wanted

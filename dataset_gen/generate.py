@@ -1,0 +1,142 @@
+"""Generate a dataset: many scene jobs, resumable, crash-safe, parallel across scenes.
+
+Each finished scene is appended to the manifest by this (parent) process only, after its files
+are complete. Re-running the same command skips listed scenes; leftover temporary files from a
+crash are removed first. Jobs run in-process (``workers=1``) or in a spawn-started process pool,
+each worker limiting Mitsuba's thread pool to its share of the cores.
+"""
+from __future__ import annotations
+
+import concurrent.futures as cf
+import multiprocessing
+import os
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from importlib import metadata
+from pathlib import Path
+from typing import Any, Protocol
+
+from dataset_gen.config import DatasetConfig, DatasetError, open_dataset
+from dataset_gen.jobs import IMAGES_DIR, SCENES_DIR, run_job
+from dataset_gen.manifest import append_record, read_records, repair
+from pipeline.atomic_io import TMP_PREFIX
+from pipeline.backend import LLVM_VARIANT, resolve_variant
+
+
+class Progress(Protocol):
+    def update(self, n: int = 1) -> Any: ...
+    def set_postfix_str(self, s: str) -> Any: ...
+    def write(self, s: str) -> Any: ...
+    def close(self) -> Any: ...
+
+
+@dataclass
+class GenerateSummary:
+    """What a run did. ``render_s`` sums the jobs' own render times; ``job_s`` their wall times."""
+
+    done: int = 0
+    skipped: int = 0
+    failed: list[str] = field(default_factory=list)
+    wall_s: float = 0.0
+    render_s: float = 0.0
+    job_s: float = 0.0
+    samples: int = 0
+
+    def overhead(self) -> float:
+        """Fraction of job time spent outside Mitsuba's renders (scene generation, I/O...)."""
+        return 0.0 if self.job_s == 0 else 1.0 - self.render_s / self.job_s
+
+
+def with_runtime(cfg: DatasetConfig) -> DatasetConfig:
+    """``cfg`` with the Mitsuba version and the variant this machine will use filled in."""
+    from dataclasses import replace
+
+    variant, _ = resolve_variant(os.environ.get("DENOISER_MI_VARIANT") or LLVM_VARIANT)
+    return replace(cfg, mitsuba=metadata.version("mitsuba"), variant=variant)
+
+
+def remove_stale_temporaries(folder: Path) -> int:
+    """Delete temp files left by a crash (never a finished file); return how many."""
+    count = 0
+    for sub in (folder, folder / IMAGES_DIR, folder / SCENES_DIR):
+        if sub.is_dir():
+            for path in sub.rglob(f"{TMP_PREFIX}*"):
+                path.unlink(missing_ok=True)
+                count += 1
+    return count
+
+
+def _init_worker(threads: int) -> None:
+    from pipeline.backend import select_variant
+
+    select_variant()
+    import drjit as dr
+
+    dr.set_thread_count(threads)
+
+
+def _render_seconds(record: dict[str, Any]) -> float:
+    return sum(v for k, v in record["timings"].items() if k.startswith("render_"))
+
+
+def generate_dataset(
+    folder: Path,
+    cfg: DatasetConfig,
+    scenes: int,
+    workers: int = 1,
+    make_progress: Callable[[int], Progress] | None = None,
+) -> GenerateSummary:
+    """Render scenes ``0..scenes-1`` of ``cfg`` into ``folder`` (skipping finished ones)."""
+    if scenes < 1:
+        raise DatasetError(f"--scenes must be >= 1, got {scenes}")
+    if workers < 1:
+        raise DatasetError(f"--workers must be >= 1, got {workers}")
+    cfg = open_dataset(folder, with_runtime(cfg))
+    (folder / IMAGES_DIR).mkdir(exist_ok=True)
+    remove_stale_temporaries(folder)
+    repair(folder)
+    finished = {r["index"] for r in read_records(folder)}
+    todo = [i for i in range(scenes) if i not in finished]
+    summary = GenerateSummary(skipped=scenes - len(todo))
+    progress = make_progress(len(todo)) if make_progress else None
+    start = time.perf_counter()
+
+    def finish(index: int, record: dict[str, Any] | None, error: BaseException | None) -> None:
+        if error is not None:
+            summary.failed.append(f"scene {index}: {error}")
+            if progress:
+                progress.write(f"scene {index} failed: {error}")
+        else:
+            append_record(folder, record)
+            summary.done += 1
+            summary.render_s += _render_seconds(record)
+            summary.job_s += record["timings"]["total_s"]
+            summary.samples += record["samples"]
+        if progress:
+            elapsed = time.perf_counter() - start
+            progress.update(1)
+            progress.set_postfix_str(f"{summary.samples / max(elapsed, 1e-9) / 1e6:.1f} Msamples/s")
+
+    try:
+        if workers == 1:
+            for index in todo:
+                try:
+                    record, error = run_job(cfg, index, folder), None
+                except Exception as exc:  # a broken scene must not stop the others
+                    record, error = None, exc
+                finish(index, record, error)
+        else:
+            threads = max(1, (os.cpu_count() or 1) // workers)
+            ctx = multiprocessing.get_context("spawn")
+            with cf.ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker,
+                                        initargs=(threads,)) as pool:
+                futures = {pool.submit(run_job, cfg, i, folder): i for i in todo}
+                for fut in cf.as_completed(futures):
+                    exc = fut.exception()
+                    finish(futures[fut], None if exc else fut.result(), exc)
+    finally:
+        if progress:
+            progress.close()
+    summary.wall_s = time.perf_counter() - start
+    return summary

@@ -1,0 +1,179 @@
+"""``render-and-denoise``'s core: render a scene, denoise it, compare, write files and a report.
+
+Outputs in ``out``: noisy.exr, denoised.exr (+ oidn.exr, reference.exr), a PNG preview of each,
+comparison.png, metrics.json (written last: a run without it did not finish), report.html and
+config.json (the run's settings).
+"""
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from importlib import metadata
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pipeline.atomic_io import write_text_atomic
+from pipeline.denoise import Denoiser
+from pipeline.errors import DenoiserError
+from pipeline.exr import read_exr, write_exr
+from pipeline.metrics import all_metrics
+from pipeline.oidn import oidn_denoise
+from pipeline.render import load_scene, pass_seeds, prepare, render_loaded
+from pipeline.report import comparison_image, write_previews, write_report
+from pipeline.png import save_png
+
+
+@dataclass
+class RunConfig:
+    """Settings of one render-and-denoise run (filled by the CLI, saved as config.json)."""
+
+    scene: str
+    out: str
+    spp: int = 128
+    resolution: tuple[int, int] | None = None
+    seed: int = 0
+    model: str | None = None
+    reference: str | None = None
+    reference_spp: int | None = None
+    compare_oidn: bool = False
+    params: dict[str, str] = field(default_factory=dict)
+    max_memory_mb: float = 1024.0
+
+
+def _json_safe(value: Any) -> Any:
+    if isinstance(value, float) and not math.isfinite(value):
+        return None  # JSON has no inf: identical images have PSNR null (= infinite)
+    if isinstance(value, dict):
+        return {k: _json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_safe(v) for v in value]
+    return value
+
+
+def image_stats(img: np.ndarray) -> dict[str, float]:
+    """Summary statistics of an HxWx3 radiance image (used when there is no reference)."""
+    return {"mean": float(img.mean()), "min": float(img.min()), "max": float(img.max()),
+            "p99": float(np.percentile(img, 99))}
+
+
+def _check_out(out: Path) -> None:
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise DenoiserError(f"{out}: cannot create output folder ({exc.strerror or exc})") from None
+    if not out.is_dir():
+        raise DenoiserError(f"{out}: is not a folder")
+    probe = out / ".write-test"
+    try:
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as exc:
+        raise DenoiserError(f"{out}: output folder is not writable ({exc.strerror or exc})") from None
+
+
+def run(cfg: RunConfig, log: Callable[[str], None] = lambda s: None) -> dict[str, Any]:
+    """Render, denoise, compare; write every output; return the metrics dict."""
+    if cfg.reference and cfg.reference_spp:
+        raise DenoiserError("give either --reference or --reference-spp, not both")
+    out = Path(cfg.out)
+    t_start = time.perf_counter()
+    denoiser = Denoiser(cfg.model, max_memory_mb=cfg.max_memory_mb)
+    reference = read_exr(cfg.reference).rgb if cfg.reference else None
+    _check_out(out)
+    write_text_atomic(out / "config.json", json.dumps(asdict(cfg), indent=1) + "\n")
+
+    aovs = ("albedo", "sh_normal") if denoiser.needs_aovs else ()
+    t0 = time.perf_counter()
+    scene = load_scene(prepare(cfg.scene, cfg.resolution, aovs, cfg.params))
+    t_load = time.perf_counter() - t0
+    log(f"rendering {cfg.spp} spp")
+    noisy = render_loaded(scene, cfg.spp, cfg.seed, aovs)
+    if reference is not None and reference.shape != noisy.rgb.shape:
+        raise DenoiserError(f"{cfg.reference}: reference is {reference.shape[1]}x{reference.shape[0]}"
+                            f", render is {noisy.rgb.shape[1]}x{noisy.rgb.shape[0]}")
+    log(f"denoising with {denoiser.name}")
+    result = denoiser.denoise_array(noisy.rgb, noisy.aovs.get("albedo"), noisy.aovs.get("sh_normal"))
+    images = {"noisy": noisy.rgb, "denoised": result.image}
+    timings = {"scene_load_s": t_load, "render_s": noisy.seconds, "denoise_s": result.seconds}
+    if cfg.compare_oidn:
+        images["oidn"], timings["oidn_s"] = oidn_denoise(noisy.rgb)
+    if cfg.reference_spp:
+        log(f"rendering the reference at {cfg.reference_spp} spp")
+        plain = load_scene(prepare(cfg.scene, cfg.resolution, (), cfg.params)) if aovs else scene
+        ref = render_loaded(plain, cfg.reference_spp, pass_seeds(cfg.seed, 2)[1])
+        reference, timings["reference_render_s"] = ref.rgb, ref.seconds
+    if reference is not None:
+        images["reference"] = reference
+
+    meta = {"scene": Path(cfg.scene).stem, "spp": cfg.spp, "seed": cfg.seed}
+    for name, img in images.items():
+        write_exr(out / f"{name}.exr", img, metadata={**meta, "image": name})
+    pngs = write_previews(out, images)
+    focus_against = ("denoised", "reference") if reference is not None else ("denoised", "noisy")
+    save_png(out / "comparison.png", comparison_image(images, *focus_against))
+    pngs.insert(0, out / "comparison.png")
+
+    timings["total_s"] = time.perf_counter() - t_start
+    h, w = noisy.rgb.shape[:2]
+    metrics: dict[str, Any] = {
+        "scene": str(cfg.scene), "spp": cfg.spp, "resolution": [w, h], "seed": cfg.seed,
+        "model": {"name": denoiser.name, "sha256": denoiser.sha256, "config": denoiser.config.to_dict()},
+        "mitsuba": metadata.version("mitsuba"), "variant": noisy.variant, "timings": timings,
+        "sanitized": {"render_nonfinite_pixels": noisy.nonfinite, "denoiser_nonfinite_values":
+                      result.nonfinite, "denoiser_negative_values": result.negative},
+    }
+    if reference is not None:
+        metrics["quality"] = {n: all_metrics(img, reference) for n, img in images.items()
+                              if n != "reference"}
+        metrics["note"] = "quality against the reference (PSNR/SSIM tonemapped x/(1+x), gamma 1/2.2)"
+    else:
+        metrics["stats"] = {n: image_stats(img) for n, img in images.items()}
+        metrics["note"] = "no reference given: timings and image statistics only"
+    metrics = _json_safe(metrics)
+    write_report(out, metrics, pngs)
+    write_text_atomic(out / "metrics.json", json.dumps(metrics, indent=1) + "\n")
+    return metrics
+
+
+def summary_lines(metrics: dict[str, Any]) -> list[str]:
+    """A one-screen summary of a run's metrics."""
+    t = metrics["timings"]
+    lines = [f"{metrics['scene']}: {metrics['resolution'][0]}x{metrics['resolution'][1]} at "
+             f"{metrics['spp']} spp, model {metrics['model']['name']} ({metrics['variant']})",
+             "timings: " + ", ".join(f"{k[:-2]} {v:.2f}s" for k, v in t.items())]
+    quality = metrics.get("quality")
+    if quality:
+        lines.append(f"{'':10}{'PSNR dB':>9}{'SSIM':>8}{'relMSE':>10}{'FLIP':>8}")
+        for name, m in quality.items():
+            psnr = "inf" if m["psnr"] is None else f"{m['psnr']:.2f}"
+            lines.append(f"{name:10}{psnr:>9}{m['ssim']:>8.4f}{m['relmse']:>10.5f}{m['flip']:>8.4f}")
+    else:
+        lines.append(metrics["note"])
+    return lines
+
+
+def denoise_file(src: str | Path, dst: str | Path, model: str | None = None,
+                 reference: str | Path | None = None,
+                 max_memory_mb: float = 1024.0) -> dict[str, Any]:
+    """``denoise IN.exr OUT.exr``: denoise an EXR rendered elsewhere; metrics if a reference."""
+    denoiser = Denoiser(model, max_memory_mb=max_memory_mb)
+    image = read_exr(src)
+    ref = read_exr(reference).rgb if reference else None
+    if ref is not None and ref.shape != image.rgb.shape:
+        raise DenoiserError(f"{reference}: reference is {ref.shape[1]}x{ref.shape[0]}, "
+                            f"input is {image.rgb.shape[1]}x{image.rgb.shape[0]}")
+    albedo = image.layers.get("albedo")
+    normals = image.layers.get("normal", image.layers.get("sh_normal"))
+    result = denoiser.denoise_array(image.rgb, albedo, normals)
+    write_exr(dst, result.image, metadata={"denoised_by": denoiser.name, "source": Path(src).name})
+    out: dict[str, Any] = {"input": str(src), "output": str(dst), "denoise_s": result.seconds,
+                           "model": denoiser.name, "nonfinite_values": result.nonfinite,
+                           "negative_values": result.negative}
+    if ref is not None:
+        out["quality"] = {"noisy": all_metrics(image.rgb, ref), "denoised": all_metrics(result.image, ref)}
+    return _json_safe(out)

@@ -1,0 +1,157 @@
+"""generate-dataset: determinism, resumability, crash safety, refusing other settings."""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from dataset_gen import jobs
+from dataset_gen.cli import main as cli_main
+from dataset_gen.config import DatasetConfig, DatasetError
+from dataset_gen.generate import generate_dataset
+from dataset_gen.manifest import MANIFEST_NAME, append_record, read_records, repair
+from dataset_gen.naming import image_name
+from pipeline.atomic_io import TMP_PREFIX
+from pipeline.exr import read_exr
+
+TINY = DatasetConfig(res=(16, 16), spp=(1, 2), ref_spp=4, families=("cornell_box", "material_preview"), seed=3,
+                     val_fraction=0.5)
+TINY_ARGS = ["--res", "16", "--spp", "1,2", "--ref-spp", "4", "--families", "cornell_box,material_preview",
+             "--seed", "3", "--val-fraction", "0.5", "--quiet"]
+
+
+def _pixels(folder: Path, index: int) -> list[np.ndarray]:
+    return [read_exr(folder / "images" / image_name(index, s)).rgb for s in (1, 2, None)]
+
+
+def _no_temporaries(folder: Path) -> bool:
+    return not [p for p in folder.rglob(f"{TMP_PREFIX}*")]
+
+
+def test_scene_seeds_are_deterministic_and_cover_families() -> None:
+    cfg = DatasetConfig(families=("a", "b", "c"), seed=1)
+    assert jobs.scene_seeds(cfg, 5) == jobs.scene_seeds(cfg, 5)
+    assert jobs.scene_seeds(cfg, 5).scene_seed != jobs.scene_seeds(cfg, 6).scene_seed
+    assert [jobs.scene_seeds(cfg, i).family for i in range(3)] == ["a", "b", "c"]
+    splits = [jobs.scene_seeds(cfg, i).split for i in range(300)]
+    assert 15 < splits.count("val") < 50  # val_fraction 0.1 of 300
+    val_families = {jobs.scene_seeds(cfg, i).family for i in range(300) if splits[i] == "val"}
+    assert val_families == {"a", "b", "c"}
+
+
+def test_reference_noise_estimate() -> None:
+    rng = np.random.default_rng(0)
+    truth = np.full((64, 64, 3), 0.5)
+    halves = [truth + rng.normal(0, 0.02, truth.shape) for _ in range(2)]
+    noise = jobs.reference_noise(*halves)
+    mean = 0.5 * (halves[0] + halves[1])
+    actual = float(np.mean((mean - truth) ** 2 / (truth**2 + 0.01)))
+    assert noise["relmse"] == pytest.approx(actual, rel=0.1)
+    assert noise["psnr_ceiling_db"] > 40
+
+
+def test_generate_is_deterministic_and_complete(tmp_path: Path) -> None:
+    a, b = tmp_path / "a", tmp_path / "b"
+    summary = generate_dataset(a, TINY, scenes=2)
+    generate_dataset(b, TINY, scenes=2)
+    assert summary.done == 2 and not summary.failed and summary.render_s > 0
+    recs = read_records(a)
+    assert [r["index"] for r in recs] == [0, 1]
+    assert [r["family"] for r in recs] == ["cornell_box", "material_preview"]
+    for rec in recs:
+        assert rec["filter"] == "box" and rec["mitsuba"] == "3.9.1" and rec["ref_spp"] == 4
+        assert np.isfinite(rec["ref_noise"]["relmse"])
+        assert (a / "scenes" / rec["scene"] / "scene.xml").exists()
+        for x, y in zip(_pixels(a, rec["index"]), _pixels(b, rec["index"])):
+            assert np.array_equal(x, y) and np.isfinite(x).all()
+    assert json.loads((a / "dataset.json").read_text())["spp"] == [1, 2]
+    assert read_exr(a / "images" / image_name(0, 2)).metadata["spp"] == 2
+
+
+def test_rerun_skips_finished_and_grows(tmp_path: Path) -> None:
+    generate_dataset(tmp_path, TINY, scenes=1)
+    summary = generate_dataset(tmp_path, TINY, scenes=2)
+    assert (summary.skipped, summary.done) == (1, 1)
+    assert [r["index"] for r in read_records(tmp_path)] == [0, 1]
+
+
+def test_other_settings_are_refused(tmp_path: Path) -> None:
+    generate_dataset(tmp_path, TINY, scenes=1)
+    other = DatasetConfig(**{**TINY.to_json(), "ref_spp": 8, "families": TINY.families,
+                             "spp": TINY.spp, "res": TINY.res, "aovs": ()})
+    with pytest.raises(DatasetError, match=r"other settings \(ref_spp: 4 vs 8\)"):
+        generate_dataset(tmp_path, other, scenes=1)
+
+
+def test_failed_job_is_not_listed_and_rerun_completes(tmp_path: Path, monkeypatch) -> None:
+    real = jobs.run_job
+
+    def crash_on_one(cfg, index, folder):
+        if index == 1:
+            (folder / "images" / f"{TMP_PREFIX}half.exr").write_bytes(b"partial")
+            raise RuntimeError("worker died")
+        return real(cfg, index, folder)
+
+    monkeypatch.setattr("dataset_gen.generate.run_job", crash_on_one)
+    summary = generate_dataset(tmp_path, TINY, scenes=3)
+    assert summary.done == 2 and len(summary.failed) == 1 and "worker died" in summary.failed[0]
+    assert [r["index"] for r in read_records(tmp_path)] == [0, 2]
+    monkeypatch.setattr("dataset_gen.generate.run_job", real)
+    summary = generate_dataset(tmp_path, TINY, scenes=3)
+    assert summary.done == 1 and sorted(r["index"] for r in read_records(tmp_path)) == [0, 1, 2]
+    assert _no_temporaries(tmp_path)
+
+
+def test_torn_manifest_line_is_ignored_and_repaired(tmp_path: Path) -> None:
+    append_record(tmp_path, {"index": 0})
+    with open(tmp_path / MANIFEST_NAME, "a") as fh:
+        fh.write('{"index": 1, "fam')
+    assert [r["index"] for r in read_records(tmp_path)] == [0]
+    repair(tmp_path)
+    append_record(tmp_path, {"index": 2})
+    assert [r["index"] for r in read_records(tmp_path)] == [0, 2]
+
+
+@pytest.mark.slow
+def test_kill_9_mid_run_then_resume_matches_clean_run(tmp_path: Path) -> None:
+    killed, clean = tmp_path / "killed", tmp_path / "clean"
+    args = [sys.executable, "-m", "dataset_gen.cli", "--scenes", "6", "--out", str(killed), *TINY_ARGS]
+    proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.time() + 120
+    while time.time() < deadline and len(read_records(killed)) < 2 and proc.poll() is None:
+        time.sleep(0.05)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    partial = {r["index"] for r in read_records(killed)}
+    assert partial, "the run should have finished some scenes before the kill"
+    assert cli_main(["--scenes", "6", "--out", str(killed), *TINY_ARGS]) == 0
+    assert cli_main(["--scenes", "6", "--out", str(clean), *TINY_ARGS]) == 0
+    assert sorted(r["index"] for r in read_records(killed)) == list(range(6))
+    assert _no_temporaries(killed)
+    for i in range(6):
+        for x, y in zip(_pixels(killed, i), _pixels(clean, i)):
+            assert np.array_equal(x, y)
+
+
+def test_cli_errors_are_one_line(tmp_path: Path, capsys) -> None:
+    assert cli_main(["--scenes", "1", "--out", str(tmp_path / "x"), "--families", "nope"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "unknown family 'nope'" in err
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    assert cli_main(["--scenes", "1", "--out", str(blocker), *TINY_ARGS]) == 1
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "not a directory" in err
+
+
+def test_cli_writes_dataset_and_preview(tmp_path: Path, capsys) -> None:
+    assert cli_main(["--scenes", "2", "--out", str(tmp_path), "--preview", *TINY_ARGS]) == 0
+    out = capsys.readouterr().out
+    assert "2 scenes rendered" in out and (tmp_path / "preview.png").stat().st_size > 0
