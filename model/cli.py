@@ -1,13 +1,147 @@
-"""Command-line entry point `train`."""
+"""Command-line entry point ``train``: parse flags, build a :class:`TrainConfig`, call the library.
+
+    train --data DIR --out RUN_DIR [--config FILE.json] [--preset fast|balanced|high] [--steps N] ...
+    train --out RUN_DIR --resume [--steps N]
+
+Precedence for a new run: defaults < ``--config`` JSON (any TrainConfig fields; ``"model"`` may be
+a full ModelConfig object or ``{"preset": "fast", ...overrides}``) < flags. On ``--resume`` the
+config comes from RUN_DIR/last.ckpt and only run-control flags (steps, intervals, speed options,
+data path) may be given. Errors: one line on stderr, exit 1 (2 for bad usage, 130 on Ctrl-C).
+"""
 from __future__ import annotations
 
+import argparse
+import dataclasses
+import json
 import sys
+from pathlib import Path
+from typing import Any, NoReturn
+
+from model.config import PRESETS, ModelConfig, preset
+from model.errors import ConfigError
+from model.train import resume_config, train
+from model.train_config import TrainConfig
+from pipeline.errors import DenoiserError
+
+_FLAGS = {  # argparse dest -> TrainConfig field
+    "data": "data", "steps": "steps", "batch": "batch", "lr": "lr", "grad_clip": "grad_clip", "seed": "seed",
+    "log_every": "log_every", "val_every": "val_every", "ckpt_every": "ckpt_every", "threads": "threads",
+    "channels_last": "channels_last", "bf16": "bf16", "compile": "compile", "oidn": "oidn",
+    "prefetch": "prefetch", "progress": "progress", "max_bad_steps": "max_bad_steps",
+    "micro_batch": "micro_batch",
+}
+_MODEL_FLAGS = ("arch", "transfer", "output", "aux_inputs")
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str) -> NoReturn:
+        print(f"{self.prog}: error: {message}", file=sys.stderr)
+        raise SystemExit(2)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The ``train`` argument parser (every option defaults to None = not given)."""
+    p = _Parser(prog="train", description="Train the Kim & Lee densely connected MC denoiser on the CPU.",
+                argument_default=None)
+    p.add_argument("--data", help="dataset folder (dataset.json, manifest.jsonl, images/)")
+    p.add_argument("--out", required=True, help="run folder (checkpoints, log.jsonl, curves.png)")
+    p.add_argument("--config", help="JSON file with TrainConfig fields")
+    p.add_argument("--resume", action="store_true", default=False, help="continue the run in --out")
+    p.add_argument("--steps", type=int, help="total optimiser steps (default 100000)")
+    p.add_argument("--preset", choices=sorted(PRESETS), help="model size preset (default balanced)")
+    p.add_argument("--arch", choices=["densenet", "plaincnn"])
+    p.add_argument("--transfer", choices=["log", "pu"])
+    p.add_argument("--output", choices=["residual", "direct"])
+    p.add_argument("--aux", dest="aux_inputs", action="store_const", const=True, help="also feed albedo+normal")
+    p.add_argument("--batch", type=int, help="patches per step (default 64)")
+    p.add_argument("--patch", type=int, help="patch side in pixels (default 28)")
+    p.add_argument("--lr", type=float, help="Adam base learning rate (default 0.01)")
+    p.add_argument("--grad-clip", type=float, help="clip the gradient L2 norm to this (default off)")
+    p.add_argument("--micro-batch", type=int,
+                   help="accumulate gradients over chunks of this size (faster; BatchNorm per chunk)")
+    p.add_argument("--seed", type=int)
+    p.add_argument("--log-every", type=int, help="steps per train-loss log line (default 100)")
+    p.add_argument("--val-every", type=int, help="steps between validations, 0 = never (default 2000)")
+    p.add_argument("--ckpt-every", type=int, help="steps between last.ckpt saves (default 1000)")
+    p.add_argument("--max-bad-steps", type=int, help="stop after this many NaN/Inf steps in a row (20)")
+    p.add_argument("--threads", type=int, help="torch CPU threads (default: torch's choice)")
+    p.add_argument("--no-channels-last", dest="channels_last", action="store_const", const=False)
+    p.add_argument("--no-prefetch", dest="prefetch", action="store_const", const=False)
+    p.add_argument("--bf16", action="store_const", const=True, help="bfloat16 autocast (changes numerics)")
+    p.add_argument("--compile", action="store_const", const=True, help="torch.compile the model")
+    p.add_argument("--no-oidn", dest="oidn", action="store_const", const=False, help="skip the OIDN baseline")
+    p.add_argument("--no-progress", dest="progress", action="store_const", const=False)
+    return p
+
+
+def _read_json(path: str) -> dict[str, Any]:
+    try:
+        data = json.loads(Path(path).read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ConfigError(f"{path}: cannot read config ({exc})") from None
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: config must be a JSON object")
+    return data
+
+
+def _model_config(base: Any, args: argparse.Namespace) -> ModelConfig:
+    if isinstance(base, dict) and "preset" in base:
+        base = dataclasses.asdict(preset(base["preset"], **{k: v for k, v in base.items() if k != "preset"}))
+    model = ModelConfig.from_dict(base) if isinstance(base, dict) else PRESETS["balanced"]
+    if args.preset:
+        model = PRESETS[args.preset]
+    changes = {k: getattr(args, k) for k in _MODEL_FLAGS if getattr(args, k) is not None}
+    return dataclasses.replace(model, **changes)
+
+
+def config_from_args(args: argparse.Namespace) -> tuple[TrainConfig, bool]:
+    """(TrainConfig, resume?) from parsed flags; raises :class:`ConfigError` on conflicts."""
+    flags = {field: getattr(args, dest) for dest, field in _FLAGS.items() if getattr(args, dest) is not None}
+    if args.resume:
+        given = [f"--{k.replace('_', '-')}" for k in ("config", "preset", "patch", *_MODEL_FLAGS)
+                 if getattr(args, k) is not None]
+        if given:
+            raise ConfigError(f"{', '.join(given)} cannot be combined with --resume "
+                              f"(the run's config is in its checkpoint)")
+        return resume_config(args.out, flags), True
+    data = _read_json(args.config) if args.config else {}
+    data.update(flags, out=args.out)
+    data["model"] = _model_config(data.get("model"), args)
+    if args.patch is not None:
+        patch = dict(data.get("patch") or {}, size=args.patch)
+        data["patch"] = patch
+    if "data" not in data:
+        raise ConfigError("--data is required for a new run")
+    return TrainConfig.from_dict(data), False
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Not yet available: exits with a clear message until issue #4 lands."""
-    print("train: not implemented yet (issue #4)", file=sys.stderr)
-    return 2
+    """Entry point: returns the process exit code."""
+    args = build_parser().parse_args(argv)
+    try:
+        config, resume = config_from_args(args)
+        from tqdm import tqdm
+
+        def progress(total: int, initial: int) -> tqdm:
+            return tqdm(total=total, initial=initial, unit="step", dynamic_ncols=True,
+                        disable=not config.progress, file=sys.stderr)
+
+        result = train(config, resume=resume, progress=progress)
+    except DenoiserError as exc:
+        print(f"train: error: {exc}", file=sys.stderr)
+        return 1
+    except OSError as exc:
+        print(f"train: error: {exc.strerror or exc}: {exc.filename or ''}".rstrip(": "), file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        last = Path(args.out) / "last.ckpt"
+        print(f"train: interrupted{f'; resume from {last} with --resume' if last.exists() else ''}",
+              file=sys.stderr)
+        return 130
+    best = f"{result.best_psnr:.2f} dB" if result.best_psnr is not None else "n/a"
+    print(f"trained to step {result.step} (best val PSNR {best}, {result.skipped_steps} skipped steps); "
+          f"run in {result.run_dir}")
+    return 0
 
 
 if __name__ == "__main__":

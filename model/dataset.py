@@ -1,0 +1,154 @@
+"""Reading a generated dataset: ``dataset.json``, ``manifest.jsonl`` and the images, into RAM.
+
+Layout (written by ``dataset_gen``)::
+
+    DIR/dataset.json     {"version": 1, "res": [W, H], "spp": [...], "ref_spp": N, "aovs": [...], ...}
+    DIR/manifest.jsonl   one JSON object per finished scene: index, scene, split ("train"|"val"),
+                         spp, aovs, ...
+    DIR/images/          names from dataset_gen.naming.image_name only
+
+Image paths are always ``DIR/images/image_name(index, spp, kind)``; the manifest never supplies a
+path. Radiance is sanitised on load (NaN -> 0, clamped to [0, HDR_MAX]); aux images are the RGB
+channels of the ``.alb.exr`` (albedo, [0,1]) and ``.nrm.exr`` (normal, [-1,1]) files.
+"""
+from __future__ import annotations
+
+import json
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from dataset_gen.naming import image_name
+from model.errors import DatasetError
+from model.patches import TrainingPair
+from model.transfer import HDR_MAX, TransferFunction
+from pipeline.errors import ExrError
+from pipeline.exr import read_exr
+
+DATASET_VERSION = 1
+
+
+@dataclass(frozen=True)
+class SceneRecord:
+    """One manifest line: scene index, split, rendered spp levels and aux buffers."""
+
+    index: int
+    split: str
+    spp: tuple[int, ...]
+    aovs: tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class ValImage:
+    """A whole validation image: linear radiance HxWx3 float32 (noisy and reference) and aux
+    (HxWx6: albedo RGB then normal XYZ) or None."""
+
+    scene: int
+    spp: int
+    noisy: np.ndarray
+    ref: np.ndarray
+    aux: np.ndarray | None
+
+
+def read_dataset_config(root: Path) -> dict[str, Any]:
+    """Parsed ``dataset.json``; raises :class:`DatasetError` if missing, malformed or unsupported."""
+    path = root / "dataset.json"
+    try:
+        config = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise DatasetError(f"{path}: not found (is {root} a dataset folder?)") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise DatasetError(f"{path}: cannot read ({exc})") from None
+    if not isinstance(config, dict) or config.get("version") != DATASET_VERSION:
+        raise DatasetError(f"{path}: unsupported dataset version "
+                           f"{config.get('version') if isinstance(config, dict) else None!r} "
+                           f"(expected {DATASET_VERSION})")
+    spp = config.get("spp")
+    if not isinstance(spp, list) or not spp or not all(isinstance(s, int) and s >= 1 for s in spp):
+        raise DatasetError(f"{path}: 'spp' must be a non-empty list of positive integers")
+    return config
+
+
+def _record(line: str, path: Path, number: int) -> SceneRecord:
+    try:
+        obj = json.loads(line)
+        record = SceneRecord(int(obj["index"]), str(obj["split"]),
+                             tuple(int(s) for s in obj["spp"]), tuple(str(a) for a in obj.get("aovs", [])))
+    except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
+        raise DatasetError(f"{path}:{number}: malformed manifest line ({exc})") from None
+    if record.index < 0 or record.split not in ("train", "val"):
+        raise DatasetError(f"{path}:{number}: bad index {record.index} or split {record.split!r}")
+    return record
+
+
+def read_manifest(root: Path) -> list[SceneRecord]:
+    """All scene records of ``manifest.jsonl`` (blank lines ignored, later duplicates win)."""
+    path = root / "manifest.jsonl"
+    try:
+        lines = path.read_text(encoding="utf-8").splitlines()
+    except FileNotFoundError:
+        raise DatasetError(f"{path}: not found (no finished scenes yet?)") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise DatasetError(f"{path}: cannot read ({exc})") from None
+    records = {r.index: r for n, line in enumerate(lines, 1) if line.strip() for r in [_record(line, path, n)]}
+    return sorted(records.values(), key=lambda r: r.index)
+
+
+def _read_rgb(root: Path, index: int, spp: int | None, kind: str) -> np.ndarray:
+    path = root / "images" / image_name(index, spp, kind)
+    try:
+        rgb = read_exr(path).rgb
+    except ExrError as exc:
+        raise DatasetError(str(exc)) from None
+    if kind == "hdr":
+        rgb = np.clip(np.nan_to_num(rgb, nan=0.0, posinf=HDR_MAX, neginf=0.0), 0.0, HDR_MAX)
+    else:
+        rgb = np.nan_to_num(rgb, nan=0.0, posinf=0.0, neginf=0.0)
+    return rgb.astype(np.float32)
+
+
+def _aux(root: Path, record: SceneRecord, spp: int) -> np.ndarray:
+    missing = {"alb", "nrm"} - set(record.aovs)
+    if missing:
+        raise DatasetError(f"scene {record.index}: the model needs aux inputs but the dataset has no "
+                           f"{'/'.join(sorted(missing))} buffers")
+    return np.concatenate([_read_rgb(root, record.index, spp, "alb"),
+                           _read_rgb(root, record.index, spp, "nrm")], axis=-1)
+
+
+def _encode(transfer: TransferFunction, rgb: np.ndarray) -> np.ndarray:
+    return transfer.forward(torch.from_numpy(rgb)).numpy()
+
+
+def load_training_pairs(root: Path, records: Iterable[SceneRecord], transfer: TransferFunction,
+                        aux: bool, progress: Callable[[int], Any] | None = None) -> list[TrainingPair]:
+    """Every (scene, spp) of ``records`` as a transfer-space :class:`TrainingPair` held in RAM."""
+    pairs = []
+    for record in records:
+        ref = _encode(transfer, _read_rgb(root, record.index, None, "hdr"))
+        for spp in record.spp:
+            noisy = _encode(transfer, _read_rgb(root, record.index, spp, "hdr"))
+            if noisy.shape != ref.shape:
+                raise DatasetError(f"scene {record.index}: {spp}spp image {noisy.shape} differs from "
+                                   f"reference {ref.shape}")
+            if aux:
+                noisy = np.concatenate([noisy, _aux(root, record, spp)], axis=-1)
+            pairs.append(TrainingPair(np.ascontiguousarray(noisy), ref, record.index, spp))
+        if progress is not None:
+            progress(1)
+    return pairs
+
+
+def load_val_images(root: Path, records: Iterable[SceneRecord], aux: bool) -> list[ValImage]:
+    """Every (scene, spp) of ``records`` as linear-radiance :class:`ValImage` held in RAM."""
+    images = []
+    for record in records:
+        ref = _read_rgb(root, record.index, None, "hdr")
+        for spp in record.spp:
+            images.append(ValImage(record.index, spp, _read_rgb(root, record.index, spp, "hdr"), ref,
+                                   _aux(root, record, spp) if aux else None))
+    return images

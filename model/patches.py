@@ -1,0 +1,124 @@
+"""Training patches: random crops of in-RAM images, the flat-patch filter, and augmentation.
+
+Images are HxWxC float32 arrays already in transfer space: the noisy input has RGB first, then
+(when the model uses them) albedo RGB and normal XYZ; the reference is HxWx3 RGB. A batch is a
+pair of NxPxPxC / NxPxPx3 float32 arrays (NHWC; ``torch.from_numpy(a).permute(0, 3, 1, 2)`` gives
+an NCHW tensor in channels-last memory order without a copy).
+
+Following Kim & Lee, a crop whose noisy RGB holds fewer than ``min_unique`` distinct values is
+dropped (flat background, clipped sky...). Augmentation applies the same random flip/transpose and
+the same RGB channel permutation to input and target (albedo is permuted with the RGB; normals are
+only moved spatially, their XYZ values are left as they are).
+"""
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from model.errors import ConfigError, DatasetError
+
+_RGB_PERMUTATIONS = np.array([[0, 1, 2], [0, 2, 1], [1, 0, 2], [1, 2, 0], [2, 0, 1], [2, 1, 0]])
+
+
+@dataclass(frozen=True)
+class PatchConfig:
+    """``size``: crop side in pixels; ``min_unique``: distinct noisy-RGB values a crop needs;
+    ``augment``: random flips/transposes/RGB permutations; ``max_rounds``: candidate rounds per
+    batch before the sampler gives up (the data is then almost entirely flat)."""
+
+    size: int = 28
+    min_unique: int = 100
+    augment: bool = True
+    max_rounds: int = 50
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.size, int) or self.size < 1:
+            raise ConfigError(f"patch size must be a positive integer, got {self.size!r}")
+        if not isinstance(self.min_unique, int) or self.min_unique < 0:
+            raise ConfigError(f"patch min_unique must be an integer >= 0, got {self.min_unique!r}")
+        if not isinstance(self.max_rounds, int) or self.max_rounds < 1:
+            raise ConfigError(f"patch max_rounds must be a positive integer, got {self.max_rounds!r}")
+
+
+@dataclass(frozen=True)
+class TrainingPair:
+    """One noisy image and its reference, both in transfer space (see the module docstring)."""
+
+    noisy: np.ndarray
+    ref: np.ndarray
+    scene: int
+    spp: int
+
+
+def unique_counts(patches: np.ndarray) -> np.ndarray:
+    """Number of distinct values in each patch of an Nx... array -> N int64."""
+    flat = np.sort(patches.reshape(len(patches), -1), axis=1)
+    return 1 + np.count_nonzero(flat[:, 1:] != flat[:, :-1], axis=1)
+
+
+def augment(noisy: np.ndarray, ref: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Apply one random dihedral transform + RGB permutation identically to a PxPxC / PxPx3 pair."""
+    c = noisy.shape[-1]
+    both = np.concatenate([noisy, ref], axis=-1)
+    if rng.random() < 0.5:
+        both = both[:, ::-1]
+    if rng.random() < 0.5:
+        both = both[::-1]
+    if rng.random() < 0.5:
+        both = both.transpose(1, 0, 2)
+    perm = _RGB_PERMUTATIONS[rng.integers(len(_RGB_PERMUTATIONS))]
+    channels = np.arange(c + 3)
+    channels[:3] = perm
+    if c >= 6:
+        channels[3:6] = 3 + perm
+    channels[c:] = c + perm
+    both = both[:, :, channels]
+    return both[:, :, :c], both[:, :, c:]
+
+
+def _candidates(pairs: Sequence[TrainingPair], count: int, size: int,
+                rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    ids = rng.integers(len(pairs), size=count)
+    noisy, ref = [], []
+    for i in ids:
+        pair = pairs[i]
+        h, w = pair.ref.shape[:2]
+        y, x = rng.integers(h - size + 1), rng.integers(w - size + 1)
+        noisy.append(pair.noisy[y:y + size, x:x + size])
+        ref.append(pair.ref[y:y + size, x:x + size])
+    return np.stack(noisy), np.stack(ref)
+
+
+def sample_batch(pairs: Sequence[TrainingPair], batch: int, config: PatchConfig,
+                 rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """``batch`` accepted, augmented crops -> (NxPxPxC noisy, NxPxPx3 ref) float32 arrays.
+
+    Pairs are drawn uniformly (so every spp level of every scene is equally likely), crop
+    positions uniformly. Raises :class:`DatasetError` if too few crops pass the flat-patch filter.
+    """
+    if not pairs:
+        raise DatasetError("no training images to sample patches from")
+    for pair in pairs:
+        if min(pair.ref.shape[:2]) < config.size:
+            raise DatasetError(f"scene {pair.scene}: image {pair.ref.shape[1]}x{pair.ref.shape[0]} is "
+                               f"smaller than the {config.size}px patch size")
+    kept_noisy: list[np.ndarray] = []
+    kept_ref: list[np.ndarray] = []
+    for _ in range(config.max_rounds):
+        need = batch - len(kept_noisy)
+        if need <= 0:
+            break
+        noisy, ref = _candidates(pairs, max(2 * need, 8), config.size, rng)
+        ok = unique_counts(noisy[..., :3]) >= config.min_unique
+        kept_noisy.extend(noisy[ok][:need])
+        kept_ref.extend(ref[ok][:need])
+    if len(kept_noisy) < batch:
+        raise DatasetError(f"only {len(kept_noisy)} of {batch} patches have >= {config.min_unique} distinct "
+                           f"values after {config.max_rounds} rounds: the training images are almost flat")
+    if config.augment:
+        pairs_out = [augment(n, r, rng) for n, r in zip(kept_noisy, kept_ref)]
+        kept_noisy, kept_ref = [p[0] for p in pairs_out], [p[1] for p in pairs_out]
+    return (np.ascontiguousarray(np.stack(kept_noisy), dtype=np.float32),
+            np.ascontiguousarray(np.stack(kept_ref), dtype=np.float32))

@@ -1,0 +1,294 @@
+"""The training loop: data in RAM, guarded Adam steps, validation, logs, atomic checkpoints.
+
+A run lives in one folder (``TrainConfig.out``): ``train_config.json``, ``log.jsonl``,
+``last.ckpt`` (every ``ckpt_every`` steps and at the end), ``best.ckpt`` (best validation PSNR) and
+``curves.png``. The batch of step ``s`` is drawn from ``numpy.random.default_rng([seed, s])``, so a
+resumed run sees exactly the batches an uninterrupted one would; model, BatchNorm statistics, Adam
+state, LR schedule (a function of the step) and the torch RNG come from ``last.ckpt``.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+import torch
+
+from model.checkpoint import (Checkpoint, model_from_checkpoint, read_checkpoint, restore_optimizer,
+                              restore_rng, save_checkpoint)
+from model.dataset import (load_training_pairs, load_val_images, read_dataset_config, read_manifest)
+from model.errors import ConfigError, DatasetError, ModelError, TrainingError
+from model.network import Denoiser, build_model
+from model.patches import TrainingPair, sample_batch
+from model.run_log import RunLog, plot_curves
+from model.step import NonFiniteGuard, learning_rate, train_step
+from model.train_config import RESUMABLE_OVERRIDES, TrainConfig
+from model.transfer import get_transfer
+from model.validate import Validator
+from pipeline.atomic_io import write_text_atomic
+
+# dataset.json fields a resumed run must see unchanged
+_DATA_KEYS = ("spp", "ref_spp", "filter", "aovs")
+
+
+class ProgressBar(Protocol):
+    """The part of ``tqdm`` the loop uses."""
+
+    def update(self, n: int = 1) -> Any: ...
+    def set_postfix(self, ordered_dict: dict[str, Any] | None = None, refresh: bool = True) -> Any: ...
+    def close(self) -> Any: ...
+
+
+ProgressFactory = Callable[[int, int], ProgressBar]  # (total steps, initial step) -> bar
+
+
+@dataclass
+class TrainResult:
+    """Outcome of :func:`train`: final step, best validation PSNR (dB) and skipped steps."""
+
+    run_dir: Path
+    step: int
+    best_psnr: float | None
+    skipped_steps: int
+
+
+@dataclass
+class _LossMeter:
+    """Losses since the last train log line (kept in checkpoints so the curve continues)."""
+
+    total: float = 0.0
+    count: int = 0
+    skipped: int = 0
+    started: float = field(default_factory=time.perf_counter)
+    paused: float = 0.0  # seconds spent validating/checkpointing, left out of patches/s
+
+
+def build_optimizer(model: torch.nn.Module, config: TrainConfig) -> torch.optim.Adam:
+    """Adam at the configured base LR (the schedule sets the LR of each step)."""
+    return torch.optim.Adam(model.parameters(), lr=config.lr, fused=True if config.fused_adam else None)
+
+
+def to_tensor(batch: np.ndarray, channels_last: bool) -> torch.Tensor:
+    """NxHxWxC float32 array -> NxCxHxW tensor (channels-last memory order, or contiguous NCHW)."""
+    tensor = torch.from_numpy(batch).permute(0, 3, 1, 2)
+    return tensor if channels_last else tensor.contiguous()
+
+
+class BatchSource:
+    """Deterministic per-step batches, optionally sampled one step ahead on a background thread."""
+
+    def __init__(self, pairs: list[TrainingPair], config: TrainConfig) -> None:
+        self.pairs, self.config = pairs, config
+        self._pool = ThreadPoolExecutor(1, thread_name_prefix="patches") if config.prefetch else None
+        self._pending: tuple[int, Future[tuple[np.ndarray, np.ndarray]]] | None = None
+
+    def _make(self, step: int) -> tuple[np.ndarray, np.ndarray]:
+        rng = np.random.default_rng([self.config.seed, step])
+        return sample_batch(self.pairs, self.config.batch, self.config.patch, rng)
+
+    def get(self, step: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """(noisy NxCxPxP, ref Nx3xPxP) transfer-space tensors of ``step``."""
+        if self._pending is not None and self._pending[0] == step:
+            noisy, ref = self._pending[1].result()
+        else:
+            noisy, ref = self._make(step)
+        self._pending = (step + 1, self._pool.submit(self._make, step + 1)) if self._pool else None
+        return to_tensor(noisy, self.config.channels_last), to_tensor(ref, self.config.channels_last)
+
+    def close(self) -> None:
+        """Stop the background thread."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+
+
+def resume_config(out: str | Path, overrides: dict[str, Any]) -> TrainConfig:
+    """The config of the run in ``out`` (from its last.ckpt) with the allowed ``overrides``."""
+    ckpt = read_checkpoint(Path(out) / "last.ckpt")
+    saved = ckpt.header.get("train_config")
+    if not isinstance(saved, dict):
+        raise ConfigError(f"{ckpt.path}: holds no training config to resume from")
+    base = TrainConfig.from_dict(saved)
+    changed = sorted(k for k, v in overrides.items() if k not in RESUMABLE_OVERRIDES and getattr(base, k, v) != v)
+    if changed:
+        raise ConfigError(f"cannot change {', '.join(changed)} on --resume (start a new run instead)")
+    return dataclasses.replace(base, out=str(out), **overrides)
+
+
+def _check_data_config(data_config: dict[str, Any], ckpt: Checkpoint | None, config: TrainConfig) -> None:
+    if config.model.aux_inputs and not {"alb", "nrm"} <= set(data_config.get("aovs") or []):
+        raise DatasetError(f"{config.data}: the model needs albedo/normal but dataset.json lists aovs "
+                           f"{data_config.get('aovs')!r}")
+    saved = ckpt.header.get("data_config") if ckpt is not None else None
+    if saved:
+        diff = [k for k in _DATA_KEYS if saved.get(k) != data_config.get(k)]
+        if diff:
+            raise DatasetError(f"{config.data}: dataset differs from the one this run was trained on "
+                               f"({', '.join(f'{k}: {saved.get(k)!r} -> {data_config.get(k)!r}' for k in diff)})")
+
+
+class _Run:
+    """State of one training run; :func:`train` drives it."""
+
+    def __init__(self, config: TrainConfig, resume: bool) -> None:
+        self.config = config
+        self.dir = Path(config.out)
+        self.log = RunLog(self.dir / "log.jsonl")
+        self.last_path, self.best_path = self.dir / "last.ckpt", self.dir / "best.ckpt"
+        ckpt = self._open(resume)
+        root = Path(config.data)
+        self.data_config = read_dataset_config(root)
+        _check_data_config(self.data_config, ckpt, config)
+        records = read_manifest(root)
+        train_records = [r for r in records if r.split == "train"]
+        if not train_records:
+            raise DatasetError(f"{root}: manifest has no scenes in split 'train'")
+        self.pairs = load_training_pairs(root, train_records, get_transfer(config.model.transfer),
+                                         config.model.aux_inputs)
+        val_records = [r for r in records if r.split == "val"]
+        self.validator = Validator(load_val_images(root, val_records, config.model.aux_inputs), config.oidn) \
+            if val_records and config.val_every else None
+        self.model, self.optimizer = self._build(ckpt)
+        extra = ckpt.header.get("extra", {}) if ckpt else {}
+        self.step = int(ckpt.header["step"]) if ckpt else 0
+        self.best_psnr: float | None = extra.get("best_psnr")
+        self.guard = NonFiniteGuard(config.max_bad_steps, int(extra.get("skipped_total", 0)))
+        self.meter = _LossMeter(**extra.get("meter", {}))
+        self.saved_step: int | None = self.step if ckpt else None
+        if ckpt:
+            self.log.truncate_after(self.step)
+
+    def _open(self, resume: bool) -> Checkpoint | None:
+        if resume:
+            return read_checkpoint(self.last_path)
+        if self.last_path.exists():
+            raise ConfigError(f"{self.dir} already holds a run (last.ckpt); use --resume or another --out")
+        if not self.dir.parent.is_dir():
+            raise ConfigError(f"{self.dir.parent}: output parent folder does not exist")
+        self.dir.mkdir(exist_ok=True)
+        self.log.path.unlink(missing_ok=True)
+        return None
+
+    def _build(self, ckpt: Checkpoint | None) -> tuple[Denoiser, torch.optim.Adam]:
+        if ckpt is None:
+            torch.manual_seed(self.config.seed)
+            model = build_model(self.config.model)
+        else:
+            model = model_from_checkpoint(ckpt)
+            if model.config != self.config.model:
+                raise ConfigError(f"{ckpt.path}: model config differs from the run's train config")
+        if self.config.channels_last:
+            model = model.to(memory_format=torch.channels_last)
+        model.train()
+        optimizer = build_optimizer(model, self.config)
+        if ckpt is not None:
+            restore_optimizer(ckpt, optimizer)
+            restore_rng(ckpt)
+        return model, optimizer
+
+    def save(self, path: Path) -> None:
+        """Checkpoint the current state to ``path`` atomically."""
+        meter = {"total": self.meter.total, "count": self.meter.count, "skipped": self.meter.skipped}
+        save_checkpoint(path, self.model, step=self.step, optimizer=self.optimizer,
+                        train_config=self.config.to_dict(), data_config=self.data_config,
+                        extra={"best_psnr": self.best_psnr, "skipped_total": self.guard.skipped_total,
+                               "meter": meter})
+        if path == self.last_path:
+            self.saved_step = self.step
+
+    def log_train(self) -> None:
+        """Write the mean loss since the last train line and reset the meter."""
+        m = self.meter
+        elapsed = time.perf_counter() - m.started - m.paused
+        self.log.append({"type": "train", "step": self.step, "loss": m.total / m.count if m.count else None,
+                         "lr": learning_rate(self.config.lr, self.config.lr_decay, self.config.lr_decay_every,
+                                             self.step - 1),
+                         "skipped": m.skipped, "skipped_total": self.guard.skipped_total,
+                         "patches_per_s": (m.count + m.skipped) * self.config.batch / elapsed
+                         if elapsed > 0 else None})
+        self.meter = _LossMeter()
+
+    def validate(self) -> dict[str, Any] | None:
+        """Validate, log, and write best.ckpt on a new best PSNR."""
+        if self.validator is None:
+            return None
+        result = self.validator.run(self.model, self.config.val_tile)
+        self.log.append({"type": "val", "step": self.step, **result})
+        if result["psnr"] is not None and (self.best_psnr is None or result["psnr"] > self.best_psnr):
+            self.best_psnr = result["psnr"]
+            self.save(self.best_path)
+        return result
+
+
+def _one_step(run: _Run, net: torch.nn.Module, source: BatchSource, bar: ProgressBar | None) -> None:
+    config = run.config
+    noisy, ref = source.get(run.step)
+    lr = learning_rate(config.lr, config.lr_decay, config.lr_decay_every, run.step)
+    result = train_step(net, run.optimizer, noisy, ref, step=run.step, lr=lr, guard=run.guard,
+                        grad_clip=config.grad_clip, bf16=config.bf16, micro_batch=config.micro_batch)
+    run.step += 1
+    if result.skipped:
+        run.meter.skipped += 1
+    else:
+        run.meter.total += result.loss
+        run.meter.count += 1
+    if run.step % config.log_every == 0 or run.step == config.steps:
+        run.log_train()
+    paused = time.perf_counter()
+    if config.val_every and (run.step % config.val_every == 0 or run.step == config.steps):
+        run.validate()
+    if run.step % config.ckpt_every == 0 or run.step == config.steps:
+        run.save(run.last_path)
+    run.meter.paused += time.perf_counter() - paused
+    if bar is not None:
+        bar.update(1)
+        bar.set_postfix({"loss": f"{result.loss:.4g}", "lr": f"{lr:.3g}"}, refresh=False)
+
+
+def _compiled(run: _Run) -> torch.nn.Module:
+    if not run.config.compile:
+        return run.model
+    return torch.compile(run.model)
+
+
+def train(config: TrainConfig, resume: bool = False, progress: ProgressFactory | None = None) -> TrainResult:
+    """Train (or, with ``resume``, continue) the run described by ``config`` up to ``config.steps``.
+
+    Raises :class:`DatasetError`, :class:`ConfigError`, :class:`CheckpointError` or
+    :class:`TrainingError` (NaN/Inf for ``max_bad_steps`` steps in a row). A KeyboardInterrupt
+    propagates without saving (a step cut in half is no state to resume from): ``--resume``
+    continues from the last periodic last.ckpt. Without "val" scenes (or with ``val_every=0``)
+    there is no validation and no best.ckpt.
+    """
+    if config.threads:
+        torch.set_num_threads(config.threads)
+    run = _Run(config, resume)
+    write_text_atomic(run.dir / "train_config.json", json.dumps(config.to_dict(), indent=2) + "\n")
+    net = _compiled(run)
+    source = BatchSource(run.pairs, config)
+    bar = progress(config.steps, run.step) if progress is not None else None
+    try:
+        if run.step < config.steps and config.compile:
+            try:
+                _one_step(run, net, source, bar)
+            except ModelError:
+                raise
+            except Exception as exc:  # torch.compile reports missing compilers etc. in many types
+                first_line = str(exc).splitlines()[0] if str(exc) else ""
+                raise TrainingError(f"torch.compile failed ({type(exc).__name__}: {first_line}); "
+                                    f"train without --compile") from None
+        while run.step < config.steps:
+            _one_step(run, net, source, bar)
+    finally:
+        source.close()
+        if bar is not None:
+            bar.close()
+        plot_curves(run.log.read(), run.dir / "curves.png")
+    if run.saved_step != run.step:
+        run.save(run.last_path)
+    return TrainResult(run.dir, run.step, run.best_psnr, run.guard.skipped_total)

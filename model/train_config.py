@@ -1,0 +1,116 @@
+"""The typed training configuration, filled by ``model.cli`` and saved as JSON beside each run.
+
+Optimisation defaults follow Kim & Lee: Adam, lr 0.01, multiplied by 0.9 every 10,000 steps,
+batch 64, 28x28 patches. ``grad_clip`` (off by default, as in the paper) clips the total L2
+gradient norm; set it (e.g. 1.0) if training on very bright HDR data diverges.
+
+Speed options — only ``bf16`` and ``micro_batch`` change what is learned:
+``channels_last`` (NHWC memory layout for oneDNN convolutions), ``fused_adam`` (one fused Adam
+kernel), ``prefetch`` (sample the next batch on a background thread), ``threads`` (torch intra-op
+threads; 0 keeps torch's default), ``compile`` (torch.compile; needs a C++ compiler),
+``bf16`` (bfloat16 autocast of the forward pass — changes numerics; measure before use),
+``micro_batch`` (compute the batch in chunks with gradient accumulation: faster on small caches,
+but BatchNorm then uses per-chunk statistics — "ghost batch norm" — so it changes what is learned).
+Measured on the 2-core AVX2 dev machine (benchmarks/train_throughput.py, balanced preset,
+batch 64): naive NCHW 21-25 patches/s; channels_last + fused Adam (the defaults) x1.2-1.3;
++ compile x1.2-1.3 (float error like naive NCHW, ~10x below eager channels_last, whose BatchNorm
+variance is computed less precisely: gradient error vs float64 1.3e-3 instead of 1.7e-4);
+micro_batch 16/32 x1.9-2.2; bf16 x0.25 (AVX2 has no bf16 arithmetic); 1 thread x0.8.
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any
+
+from model.config import ModelConfig, PRESETS
+from model.errors import ConfigError
+from model.patches import PatchConfig
+
+# Fields that may differ on --resume without changing what is being trained.
+RESUMABLE_OVERRIDES = frozenset({
+    "data", "steps", "log_every", "val_every", "ckpt_every", "max_bad_steps", "threads",
+    "channels_last", "fused_adam", "prefetch", "compile", "oidn", "val_tile", "progress",
+})
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Everything a training run needs besides the data itself. Paths are strings (JSON-ready).
+
+    ``steps``: total optimiser steps of the run (a resumed run continues up to it); intervals
+    (``log_every``, ``val_every``, ``ckpt_every``) are in steps, 0 disables validation.
+    """
+
+    data: str
+    out: str
+    model: ModelConfig = field(default_factory=lambda: PRESETS["balanced"])
+    patch: PatchConfig = field(default_factory=PatchConfig)
+    steps: int = 100_000
+    batch: int = 64
+    lr: float = 0.01
+    lr_decay: float = 0.9
+    lr_decay_every: int = 10_000
+    grad_clip: float | None = None
+    micro_batch: int | None = None
+    seed: int = 0
+    log_every: int = 100
+    val_every: int = 2_000
+    ckpt_every: int = 1_000
+    max_bad_steps: int = 20
+    threads: int = 0
+    channels_last: bool = True
+    fused_adam: bool = True
+    prefetch: bool = True
+    compile: bool = False
+    bf16: bool = False
+    oidn: bool = True
+    val_tile: int = 256
+    progress: bool = True
+
+    def __post_init__(self) -> None:
+        for name in ("steps", "batch", "lr_decay_every", "log_every", "ckpt_every", "max_bad_steps", "val_tile"):
+            value = getattr(self, name)
+            if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+                raise ConfigError(f"{name} must be a positive integer, got {value!r}")
+        for name in ("val_every", "threads", "seed"):
+            value = getattr(self, name)
+            if not isinstance(value, int) or isinstance(value, bool) or value < 0:
+                raise ConfigError(f"{name} must be an integer >= 0, got {value!r}")
+        if not (isinstance(self.lr, (int, float)) and self.lr > 0):
+            raise ConfigError(f"lr must be > 0, got {self.lr!r}")
+        if not (isinstance(self.lr_decay, (int, float)) and 0 < self.lr_decay <= 1):
+            raise ConfigError(f"lr_decay must be in (0, 1], got {self.lr_decay!r}")
+        if self.micro_batch is not None and not (
+                isinstance(self.micro_batch, int) and 1 <= self.micro_batch <= self.batch
+                and self.batch % self.micro_batch == 0):
+            raise ConfigError(f"micro_batch must divide batch ({self.batch}), got {self.micro_batch!r}")
+        if self.grad_clip is not None and not (isinstance(self.grad_clip, (int, float)) and self.grad_clip > 0):
+            raise ConfigError(f"grad_clip must be > 0 or null, got {self.grad_clip!r}")
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready dict (nested configs as dicts)."""
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> TrainConfig:
+        """Inverse of :meth:`to_dict`; unknown keys raise :class:`ConfigError`."""
+        if not isinstance(data, dict):
+            raise ConfigError(f"train config must be a JSON object, got {type(data).__name__}")
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(data) - known)
+        if unknown:
+            raise ConfigError(f"unknown train config key(s): {', '.join(unknown)}")
+        values = dict(data)
+        if isinstance(values.get("model"), dict):
+            values["model"] = ModelConfig.from_dict(values["model"])
+        if isinstance(values.get("patch"), dict):
+            patch_known = {f.name for f in dataclasses.fields(PatchConfig)}
+            bad = sorted(set(values["patch"]) - patch_known)
+            if bad:
+                raise ConfigError(f"unknown patch config key(s): {', '.join(bad)}")
+            values["patch"] = PatchConfig(**values["patch"])
+        try:
+            return cls(**values)
+        except TypeError as exc:
+            raise ConfigError(f"bad train config ({exc})") from None

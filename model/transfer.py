@@ -1,0 +1,80 @@
+"""Transfer functions: linear HDR radiance <-> the space the network sees.
+
+Each curve has an exact inverse and is scaled so that ``HDR_MAX`` (65504, the float16 maximum)
+maps to 1; radiance 0 maps to 0. Forward clamps negative radiance to 0. Computed in float64
+internally and returned in the input's dtype (float32 round trip: rtol 1e-5 over 0..65504).
+
+* ``log``: ``log1p(y) / log1p(65504)`` — radiance 1 maps to ~0.0625.
+* ``pu``: the perceptually-uniform fit used by Intel Open Image Denoise (``training/color.py``):
+  linear near 0, a power segment, then logarithmic; radiance 1 maps to ~0.319.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from model.errors import ConfigError
+
+HDR_MAX = 65504.0
+
+# OIDN's PU curve: y <= Y0 linear, y <= Y1 power, log above; X0/X1 are the curve at Y0/Y1.
+_PU_A = 1.41283765e03
+_PU_B = 1.64593172e00
+_PU_C = 4.31384981e-01
+_PU_D = -2.94139609e-03
+_PU_E = 1.92653254e-01
+_PU_F = 6.26026094e-03
+_PU_G = 9.98620152e-01
+_PU_Y0 = 1.57945760e-06
+_PU_Y1 = 3.22087631e-02
+
+
+def _pu_forward(y: torch.Tensor) -> torch.Tensor:
+    return torch.where(y <= _PU_Y0, _PU_A * y,
+                       torch.where(y <= _PU_Y1, _PU_B * torch.pow(y, _PU_C) + _PU_D,
+                                   _PU_E * torch.log(y + _PU_F) + _PU_G))
+
+
+# Branch points of the inverse, taken from the forward curve itself so that forward and inverse
+# switch branch at exactly the same place (the published X0/X1 differ in the last digits).
+_PU_X0 = _PU_A * _PU_Y0
+_PU_X1 = _PU_B * _PU_Y1 ** _PU_C + _PU_D
+
+
+def _pu_inverse(x: torch.Tensor) -> torch.Tensor:
+    return torch.where(x <= _PU_X0, x / _PU_A,
+                       torch.where(x <= _PU_X1,
+                                   torch.pow(torch.clamp((x - _PU_D) / _PU_B, min=0.0), 1.0 / _PU_C),
+                                   torch.exp((x - _PU_G) / _PU_E) - _PU_F))
+
+
+_PU_SCALE = 1.0 / (_PU_E * math.log(HDR_MAX + _PU_F) + _PU_G)
+_LOG_SCALE = 1.0 / math.log1p(HDR_MAX)
+
+
+@dataclass(frozen=True)
+class TransferFunction:
+    """A named, normalised transfer curve; ``forward``/``inverse`` work on any-shaped tensors."""
+
+    name: str
+
+    def forward(self, radiance: torch.Tensor) -> torch.Tensor:
+        """Linear radiance (negatives clamped to 0) -> transfer space, HDR_MAX -> 1."""
+        y = torch.clamp(radiance.to(torch.float64), min=0.0)
+        x = torch.log1p(y) * _LOG_SCALE if self.name == "log" else _pu_forward(y) * _PU_SCALE
+        return x.to(radiance.dtype)
+
+    def inverse(self, encoded: torch.Tensor) -> torch.Tensor:
+        """Transfer space -> linear radiance; exact inverse of :meth:`forward` on its range."""
+        x = encoded.to(torch.float64)
+        y = torch.expm1(x / _LOG_SCALE) if self.name == "log" else _pu_inverse(x / _PU_SCALE)
+        return y.to(encoded.dtype)
+
+
+def get_transfer(name: str) -> TransferFunction:
+    """The transfer function called ``name`` (``"log"`` or ``"pu"``)."""
+    if name not in ("log", "pu"):
+        raise ConfigError(f"unknown transfer function {name!r} (known: log, pu)")
+    return TransferFunction(name)

@@ -1,0 +1,1 @@
+"""Scene families: one module each, with ``generate(seed) -> GeneratedScene``."""

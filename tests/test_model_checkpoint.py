@@ -1,0 +1,151 @@
+"""Checkpoints: save -> load gives identical outputs; bad files give clear errors; no pickle."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+import safetensors.torch
+import torch
+
+from model.checkpoint import (load_model, read_checkpoint, restore_optimizer, restore_rng, save_checkpoint)
+from model.config import ModelConfig
+from model.errors import CheckpointError
+from model.loss import denoising_loss
+from model.network import build_model
+
+CONFIG = ModelConfig(layers=3, growth=4, init_features=8, transfer="pu", output="direct")
+
+
+def _trained(steps: int = 2) -> tuple[torch.nn.Module, torch.optim.Adam]:
+    torch.manual_seed(0)
+    model = build_model(CONFIG)
+    opt = torch.optim.Adam(model.parameters(), lr=1e-3)
+    x, y = torch.rand(4, 3, 12, 12), torch.rand(4, 3, 12, 12)
+    for _ in range(steps):
+        opt.zero_grad()
+        denoising_loss(model(x), y).backward()
+        opt.step()
+    return model, opt
+
+
+def test_save_load_identical_outputs(tmp_path: Path) -> None:
+    model, opt = _trained()
+    path = tmp_path / "m.ckpt"
+    save_checkpoint(path, model, step=7, optimizer=opt, train_config={"lr": 0.01},
+                    data_config={"spp": [4, 16]}, extra={"best_psnr": 30.5})
+    loaded, config, meta = load_model(path)
+    assert config == CONFIG and loaded.config == CONFIG
+    assert meta["step"] == 7 and meta["train_config"] == {"lr": 0.01} and meta["data_config"] == {"spp": [4, 16]}
+    assert meta["extra"]["best_psnr"] == 30.5 and not loaded.training
+    x = torch.rand(2, 3, 16, 16)
+    model.eval()
+    with torch.no_grad():
+        torch.testing.assert_close(loaded(x), model(x), rtol=0, atol=0)
+
+
+def test_optimizer_and_rng_restored(tmp_path: Path) -> None:
+    model, opt = _trained()
+    torch.manual_seed(123)
+    path = tmp_path / "m.ckpt"
+    save_checkpoint(path, model, step=2, optimizer=opt)
+    expected_draw = torch.rand(3)
+    ckpt = read_checkpoint(path)
+    fresh = torch.optim.Adam(build_model(CONFIG).parameters(), lr=0.5)
+    restore_optimizer(ckpt, fresh)
+    saved, restored = opt.state_dict()["state"], fresh.state_dict()["state"]
+    assert sorted(saved) == sorted(restored)
+    for index, state in saved.items():
+        for key in ("exp_avg", "exp_avg_sq", "step"):
+            torch.testing.assert_close(restored[index][key], state[key], rtol=0, atol=0)
+    assert fresh.param_groups[0]["lr"] == pytest.approx(1e-3)
+    torch.manual_seed(999)
+    restore_rng(ckpt)
+    torch.testing.assert_close(torch.rand(3), expected_draw, rtol=0, atol=0)
+
+
+def test_file_is_plain_safetensors(tmp_path: Path) -> None:
+    model, _ = _trained(0)
+    save_checkpoint(tmp_path / "m.ckpt", model, step=0)
+    tensors = safetensors.torch.load_file(str(tmp_path / "m.ckpt"))  # no pickle anywhere
+    assert any(k.startswith("model/") for k in tensors) and "rng/torch" in tensors
+
+
+def test_missing_file(tmp_path: Path) -> None:
+    with pytest.raises(CheckpointError, match="checkpoint not found"):
+        load_model(tmp_path / "nope.ckpt")
+
+
+def test_truncated(tmp_path: Path) -> None:
+    model, opt = _trained(1)
+    path = tmp_path / "m.ckpt"
+    save_checkpoint(path, model, step=1, optimizer=opt)
+    data = path.read_bytes()
+    for cut in (10, len(data) // 2, len(data) - 1):
+        path.write_bytes(data[:cut])
+        with pytest.raises(CheckpointError, match="truncated or not a safetensors checkpoint"):
+            load_model(path)
+
+
+def test_foreign_files(tmp_path: Path) -> None:
+    junk = tmp_path / "junk.ckpt"
+    junk.write_bytes(b"PK\x03\x04 this is a zip, or a pickle, or anything else" * 4)
+    with pytest.raises(CheckpointError, match="truncated or not a safetensors checkpoint"):
+        load_model(junk)
+    other = tmp_path / "other.safetensors"
+    safetensors.torch.save_file({"w": torch.zeros(3)}, str(other), metadata={"framework": "x"})
+    with pytest.raises(CheckpointError, match="not a denoiser checkpoint"):
+        load_model(other)
+
+
+def _rewrite(path: Path, header_changes: dict | None = None, drop: str | None = None,
+             replace: dict | None = None) -> None:
+    with open(path, "rb") as fh:
+        data = fh.read()
+    tensors = safetensors.torch.load(data)
+    ckpt = read_checkpoint(path)
+    header = {**ckpt.header, **(header_changes or {})}
+    if drop:
+        tensors.pop(drop)
+    tensors.update(replace or {})
+    safetensors.torch.save_file(tensors, str(path), metadata={"denoiser_checkpoint": json.dumps(header)})
+
+
+def test_config_weight_mismatch(tmp_path: Path) -> None:
+    model, _ = _trained(0)
+    path = tmp_path / "m.ckpt"
+    save_checkpoint(path, model, step=0)
+    _rewrite(path, header_changes={"model_config": {**CONFIG.to_dict(), "growth": 5}})
+    with pytest.raises(CheckpointError, match="has shape .* the model config needs"):
+        load_model(path)
+    save_checkpoint(path, model, step=0)
+    _rewrite(path, header_changes={"model_config": {**CONFIG.to_dict(), "layers": 4}})
+    with pytest.raises(CheckpointError, match="weights do not match the model config"):
+        load_model(path)
+    save_checkpoint(path, model, step=0)
+    _rewrite(path, header_changes={"model_config": {**CONFIG.to_dict(), "arch": "transformer"}})
+    with pytest.raises(CheckpointError, match="bad model config in checkpoint"):
+        load_model(path)
+    save_checkpoint(path, model, step=0)
+    _rewrite(path, header_changes={"format_version": 99})
+    with pytest.raises(CheckpointError, match="format version 99 is not supported"):
+        load_model(path)
+
+
+def test_refuses_nan_weights(tmp_path: Path) -> None:
+    model, _ = _trained(0)
+    with torch.no_grad():
+        model.head[0].weight[0, 0, 0, 0] = float("nan")
+    with pytest.raises(CheckpointError, match="refusing to save non-finite weights"):
+        save_checkpoint(tmp_path / "m.ckpt", model, step=0)
+    assert not (tmp_path / "m.ckpt").exists() and list(tmp_path.iterdir()) == []
+
+
+def test_restored_adam_moments_follow_channels_last_params(tmp_path: Path) -> None:
+    model, opt = _trained()
+    save_checkpoint(tmp_path / "m.ckpt", model, step=2, optimizer=opt)
+    fresh = build_model(CONFIG).to(memory_format=torch.channels_last)
+    fused = torch.optim.Adam(fresh.parameters(), lr=1e-3, fused=True)
+    restore_optimizer(read_checkpoint(tmp_path / "m.ckpt"), fused)
+    for param in fresh.parameters():
+        assert fused.state[param]["exp_avg"].stride() == param.stride()

@@ -1,0 +1,182 @@
+"""End-to-end training through the ``train`` CLI on a tiny synthetic dataset; resume; errors."""
+from __future__ import annotations
+
+import importlib.util
+import json
+from pathlib import Path
+
+import pytest
+import torch
+
+import model.step
+from model.checkpoint import load_model, read_checkpoint
+from model.cli import main
+from model.synthetic import write_synthetic_dataset
+
+TINY_MODEL = {"layers": 2, "growth": 4, "init_features": 8}
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return write_synthetic_dataset(tmp_path_factory.mktemp("ds"), scenes=2, res=(32, 32), spp=(4, 16),
+                                   val_scenes=(1,))
+
+
+def _config(tmp_path: Path, **fields: object) -> str:
+    path = tmp_path / f"config{len(list(tmp_path.glob('config*')))}.json"
+    path.write_text(json.dumps(fields))
+    return str(path)
+
+
+def _log(run: Path) -> list[dict]:
+    return [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
+
+
+def test_end_to_end_small_preset(dataset: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    run = tmp_path / "run"
+    rc = main(["--data", str(dataset), "--out", str(run), "--preset", "fast", "--steps", "12", "--batch", "8",
+               "--log-every", "3", "--val-every", "6", "--ckpt-every", "6", "--no-progress"])
+    assert rc == 0, capsys.readouterr().err
+    assert "trained to step 12" in capsys.readouterr().out
+    for name in ("last.ckpt", "best.ckpt", "log.jsonl", "curves.png", "train_config.json"):
+        assert (run / name).stat().st_size > 0, name
+    assert (run / "curves.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    log = _log(run)
+    assert [r["step"] for r in log if r["type"] == "train"] == [3, 6, 9, 12]
+    assert all(r["loss"] > 0 and r["lr"] == 0.01 for r in log if r["type"] == "train")
+    vals = [r for r in log if r["type"] == "val"]
+    assert [r["step"] for r in vals] == [6, 12]
+    per_spp = vals[-1]["per_spp"]
+    assert set(per_spp) == {"4", "16"}
+    for spp in ("4", "16"):
+        assert set(per_spp[spp]["psnr"]) == {"ours", "noisy", "oidn"}
+        assert per_spp[spp]["psnr"]["noisy"] is not None and per_spp[spp]["relmse"]["ours"] is not None
+    assert per_spp["16"]["psnr"]["noisy"] > per_spp["4"]["psnr"]["noisy"]
+    if importlib.util.find_spec("pyoidn") is not None:
+        assert per_spp["4"]["psnr"]["oidn"] > per_spp["4"]["psnr"]["noisy"]
+    model, config, meta = load_model(run / "last.ckpt")
+    assert meta["step"] == 12 and config.layers == 10 and config.growth == 8
+    assert meta["train_config"]["batch"] == 8 and meta["data_config"]["spp"] == [4, 16]
+    saved = json.loads((run / "train_config.json").read_text())
+    assert saved["model"] == config.to_dict() and saved["steps"] == 12
+
+
+def test_resume_continues_exactly(dataset: Path, tmp_path: Path) -> None:
+    cfg = _config(tmp_path, model=TINY_MODEL, batch=4, lr_decay_every=3, log_every=2, ckpt_every=2,
+                  val_every=0, progress=False)
+    straight, split = tmp_path / "straight", tmp_path / "split"
+    assert main(["--data", str(dataset), "--out", str(straight), "--config", cfg, "--steps", "8"]) == 0
+    assert main(["--data", str(dataset), "--out", str(split), "--config", cfg, "--steps", "5"]) == 0
+    assert read_checkpoint(split / "last.ckpt").header["step"] == 5
+    assert main(["--out", str(split), "--resume", "--steps", "8", "--no-progress"]) == 0
+    a, b = read_checkpoint(straight / "last.ckpt"), read_checkpoint(split / "last.ckpt")
+    assert a.header["step"] == b.header["step"] == 8
+    for key, value in a.prefixed("model/").items():
+        torch.testing.assert_close(b.tensors[f"model/{key}"], value, rtol=1e-6, atol=1e-7)
+    for key, value in a.prefixed("optim/").items():
+        torch.testing.assert_close(b.tensors[f"optim/{key}"], value, rtol=1e-6, atol=1e-7)
+    log_a, log_b = _log(straight), _log(split)
+    assert [r["step"] for r in log_b] == [2, 4, 5, 6, 8]  # step 5 = end of the first part
+    assert [r["lr"] for r in log_b if r["step"] in (6, 8)] == pytest.approx([0.01 * 0.9, 0.01 * 0.9 ** 2])
+    assert log_b[-1]["loss"] == pytest.approx(log_a[-1]["loss"], rel=1e-5)
+
+
+def test_resume_drops_log_lines_after_checkpoint(dataset: Path, tmp_path: Path) -> None:
+    cfg = _config(tmp_path, model=TINY_MODEL, batch=4, log_every=1, val_every=0, progress=False)
+    run = tmp_path / "run"
+    assert main(["--data", str(dataset), "--out", str(run), "--config", cfg, "--steps", "2"]) == 0
+    with open(run / "log.jsonl", "a") as fh:  # written after the checkpoint, then the process died
+        fh.write(json.dumps({"type": "train", "step": 3, "loss": 123.0}) + "\n")
+    assert main(["--out", str(run), "--resume", "--steps", "4", "--no-progress"]) == 0
+    log = _log(run)
+    assert [r["step"] for r in log] == [1, 2, 3, 4] and all(r["loss"] != 123.0 for r in log)
+
+
+def test_nan_losses_stop_training_without_poisoning(dataset: Path, tmp_path: Path,
+                                                    monkeypatch: pytest.MonkeyPatch,
+                                                    capsys: pytest.CaptureFixture) -> None:
+    cfg = _config(tmp_path, model=TINY_MODEL, batch=4, val_every=0, ckpt_every=2, progress=False)
+    run = tmp_path / "run"
+    assert main(["--data", str(dataset), "--out", str(run), "--config", cfg, "--steps", "2"]) == 0
+    before = read_checkpoint(run / "last.ckpt").prefixed("model/")
+    real = model.step.denoising_loss
+    monkeypatch.setattr(model.step, "denoising_loss", lambda out, ref: real(out, ref) * float("nan"))
+    rc = main(["--out", str(run), "--resume", "--steps", "20", "--max-bad-steps", "3", "--no-progress"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 1 and len(err) == 1
+    assert "NaN/Inf for 3 steps in a row" in err[0] and "Traceback" not in err[0]
+    after = read_checkpoint(run / "last.ckpt")  # saved at step 4, after two skipped steps
+    assert after.header["step"] == 4 and after.header["extra"]["skipped_total"] == 2
+    for key, value in before.items():  # skipped steps changed neither weights nor BatchNorm statistics
+        torch.testing.assert_close(after.tensors[f"model/{key}"], value, rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--data", "{missing}", "--out", "{tmp}/r"], "dataset.json: not found"),
+    (["--out", "{tmp}/r"], "--data is required for a new run"),
+    (["--out", "{tmp}/r", "--resume"], "last.ckpt: checkpoint not found"),
+    (["--out", "{tmp}/r", "--resume", "--preset", "fast"], "--preset cannot be combined with --resume"),
+    (["--data", "{data}", "--out", "{tmp}/no/such/r"], "output parent folder does not exist"),
+    (["--data", "{data}", "--out", "{tmp}/r", "--steps", "0"], "steps must be a positive integer"),
+    (["--data", "{data}", "--out", "{tmp}/r", "--config", "{tmp}/nope.json"], "nope.json: cannot read config"),
+])
+def test_cli_errors_one_line(dataset: Path, tmp_path: Path, capsys: pytest.CaptureFixture,
+                             argv: list[str], message: str) -> None:
+    args = [a.format(tmp=tmp_path, data=dataset, missing=tmp_path / "missing") for a in argv]
+    assert main(args) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("train: error: ") and message in err[0], err
+
+
+def test_cli_refuses_to_overwrite_a_run(dataset: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    cfg = _config(tmp_path, model=TINY_MODEL, batch=4, val_every=0, progress=False)
+    run = tmp_path / "run"
+    assert main(["--data", str(dataset), "--out", str(run), "--config", cfg, "--steps", "1"]) == 0
+    capsys.readouterr()
+    assert main(["--data", str(dataset), "--out", str(run), "--config", cfg, "--steps", "1"]) == 1
+    assert "already holds a run" in capsys.readouterr().err
+
+
+def test_cli_usage_error_exit_2(capsys: pytest.CaptureFixture) -> None:
+    with pytest.raises(SystemExit) as exc:
+        main(["--out", "x", "--preset", "giant"])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "invalid choice: 'giant'" in err[0]
+
+
+def test_aux_model_end_to_end(tmp_path: Path) -> None:
+    data = write_synthetic_dataset(tmp_path / "ds", scenes=2, res=(32, 32), spp=(4,), val_scenes=(1,), aovs=True)
+    cfg = _config(tmp_path, model={**TINY_MODEL, "aux_inputs": True, "transfer": "pu", "output": "direct"},
+                  batch=4, log_every=2, val_every=2, progress=False)
+    assert main(["--data", str(data), "--out", str(tmp_path / "run"), "--config", cfg, "--steps", "2"]) == 0
+    _, config, _ = load_model(tmp_path / "run" / "best.ckpt")
+    assert config.aux_inputs and config.in_channels == 15 and config.transfer == "pu"
+
+
+def test_resume_refuses_a_different_dataset(dataset: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    cfg = _config(tmp_path, model=TINY_MODEL, batch=4, val_every=0, progress=False)
+    run = tmp_path / "run"
+    assert main(["--data", str(dataset), "--out", str(run), "--config", cfg, "--steps", "1"]) == 0
+    other = write_synthetic_dataset(tmp_path / "other", scenes=1, spp=(8,), val_scenes=())
+    capsys.readouterr()
+    assert main(["--out", str(run), "--resume", "--data", str(other), "--steps", "2"]) == 1
+    assert "dataset differs from the one this run was trained on (spp: [4, 16] -> [8])" in capsys.readouterr().err
+
+
+def test_aux_model_refuses_dataset_without_aux(dataset: Path, tmp_path: Path,
+                                               capsys: pytest.CaptureFixture) -> None:
+    assert main(["--data", str(dataset), "--out", str(tmp_path / "run"), "--preset", "fast", "--aux"]) == 1
+    assert "the model needs albedo/normal" in capsys.readouterr().err
+
+
+def test_config_precedence_defaults_file_flags(tmp_path: Path) -> None:
+    from model.cli import build_parser, config_from_args
+    cfg = _config(tmp_path, model={"preset": "fast", "transfer": "pu"}, batch=16, lr=0.002)
+    args = build_parser().parse_args(["--data", "d", "--out", "o", "--config", cfg, "--lr", "0.005",
+                                      "--output", "direct", "--patch", "24"])
+    config, resume = config_from_args(args)
+    assert not resume and config.batch == 16 and config.lr == 0.005 and config.patch.size == 24
+    assert (config.model.layers, config.model.growth, config.model.transfer, config.model.output) == \
+        (10, 8, "pu", "direct")
+    assert config.lr_decay == 0.9 and config.lr_decay_every == 10_000 and config.grad_clip is None
