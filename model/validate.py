@@ -70,7 +70,7 @@ class Validator:
         """
         rows: dict[int, dict[str, list[Metrics | None]]] = defaultdict(lambda: defaultdict(list))
         for image in self.images:
-            ours = _metrics(denoise_image(model, image.noisy, image.aux, tile), image.ref)
+            ours = _metrics(denoise_image(model, image.noisy, image.aux, core=tile), image.ref)
             rows[image.spp]["ours"].append(ours)
             for name, value in self._baselines(image).items():
                 rows[image.spp][name].append(value)

@@ -1,8 +1,8 @@
-"""The inference object: one call owns the whole chain, from raw radiance to denoised radiance.
+"""The inference object: a checkpoint loaded once, applied to images of any kind and size.
 
-sanitize (NaN/Inf/negative -> 0, counted) -> transfer function -> network, tiled under a memory
-bound with margins covering the receptive field (exact, see :mod:`pipeline.tiling`) -> inverse
-transfer -> clamp >= 0. Mirrors ``mi.OptixDenoiser``'s call shape (``denoiser(noisy, albedo=...,
+The chain itself (sanitise, transfer, exact tiling under a memory bound, inverse) is
+:func:`model.infer.denoise_image`; this object counts the invalid input values it replaced, picks
+the tile size from the memory budget and converts between array kinds. Mirrors ``mi.OptixDenoiser``'s call shape (``denoiser(noisy, albedo=...,
 normals=...)`` returns the same kind of object it was given) but runs on the CPU with our model.
 """
 from __future__ import annotations
@@ -33,16 +33,10 @@ class DenoiseResult:
     tiles: int
 
 
-def sanitize_input(rgb: np.ndarray) -> tuple[np.ndarray, int, int]:
-    """HxWxC float -> float32 copy with NaN/Inf and negatives set to 0, and their counts."""
-    img = np.array(rgb, dtype=np.float32, copy=True)
-    bad = ~np.isfinite(img)
-    nonfinite = int(bad.sum())
-    img[bad] = 0.0
-    neg = img < 0
-    negative = int(neg.sum())
-    img[neg] = 0.0
-    return img, nonfinite, negative
+def count_invalid(rgb: np.ndarray) -> tuple[int, int]:
+    """Numbers of non-finite and of negative values in an image (both are replaced by 0)."""
+    finite = np.isfinite(rgb)
+    return int((~finite).sum()), int((rgb[finite] < 0).sum())
 
 
 def file_sha256(path: Path) -> str:
@@ -66,7 +60,7 @@ class Denoiser:
         import torch
 
         from model.checkpoint import load_model
-        from model.transfer import get_transfer
+        from model.infer import receptive_radius
 
         path = Path(checkpoint) if checkpoint is not None else DEFAULT_WEIGHTS
         if checkpoint is None and not path.exists():
@@ -79,10 +73,8 @@ class Denoiser:
         self.path = path
         self.model, self.config, self.meta = load_model(path)
         self.model.eval()
-        self.transfer = get_transfer(self.config.transfer)
         self.max_memory_mb = float(max_memory_mb)
-        # receptive-field radius: 7x7 head (3) + L 3x3 convs + 3x3 tail (1) + forward gradient (1)
-        self.margin = 3 + self.config.layers + 1 + 1
+        self.margin = receptive_radius(self.config)
 
     @property
     def name(self) -> str:
@@ -110,43 +102,32 @@ class Denoiser:
 
     def denoise_array(self, rgb: np.ndarray, albedo: np.ndarray | None = None,
                       normals: np.ndarray | None = None) -> DenoiseResult:
-        """Denoise HxWx3 linear radiance (any float dtype); see the module doc for the chain."""
-        import torch
+        """Denoise HxWx3 linear radiance (any float dtype) with :func:`model.infer.denoise_image`."""
+        from model.infer import denoise_image
 
         rgb = np.asarray(rgb)
         if rgb.ndim != 3 or rgb.shape[2] != 3 or min(rgb.shape[:2]) < 1:
             raise DenoiserError(f"expected an HxWx3 image, got shape {rgb.shape}")
         start = time.perf_counter()
-        clean, nonfinite, negative = sanitize_input(rgb)
-        planes = [self.transfer.forward(torch.from_numpy(clean)).numpy()]
+        nonfinite, negative = count_invalid(rgb)
+        aux = None
         if self.needs_aovs:
             if albedo is None or normals is None:
                 raise DenoiserError(f"model {self.name} needs albedo and normals")
-            for aux in (albedo, normals):
-                aux = np.asarray(aux, dtype=np.float32)
-                if aux.shape != rgb.shape:
-                    raise DenoiserError(f"AOV shape {aux.shape} differs from image {rgb.shape}")
-                planes.append(np.nan_to_num(aux, nan=0.0, posinf=0.0, neginf=0.0))
-        encoded = np.concatenate(planes, axis=2)
-
-        def net(window: np.ndarray) -> np.ndarray:
-            x = torch.from_numpy(np.ascontiguousarray(window.transpose(2, 0, 1)))[None]
-            with torch.inference_mode():
-                return self.model(x)[0].numpy().transpose(1, 2, 0)
-
-        core = self.core_size()
+            for buffer in (albedo, normals):
+                if np.shape(buffer) != rgb.shape:
+                    raise DenoiserError(f"AOV shape {np.shape(buffer)} differs from image {rgb.shape}")
+            aux = np.concatenate([np.asarray(albedo, np.float32), np.asarray(normals, np.float32)], axis=2)
         count = [0]
-        out = run_tiled(net, encoded, core, self.margin,
-                        progress=lambda n, total: count.__setitem__(0, total))
-        radiance = self.transfer.inverse(torch.from_numpy(np.ascontiguousarray(out))).numpy()
-        radiance = np.nan_to_num(np.clip(radiance, 0.0, None), nan=0.0, posinf=0.0).astype(np.float32)
-        return DenoiseResult(radiance, nonfinite, negative, time.perf_counter() - start, count[0])
+        out = denoise_image(self.model, rgb, aux, self.core_size(),
+                            progress=lambda n, total: count.__setitem__(0, total))
+        return DenoiseResult(out, nonfinite, negative, time.perf_counter() - start, count[0])
 
     def __call__(self, noisy: Any, albedo: Any = None, normals: Any = None) -> Any:
         """Denoise a numpy array, torch tensor, ``mi.TensorXf`` or ``mi.Bitmap`` (HxWx3, or HxWx4
         with alpha kept); returns the same kind of object."""
         kind = type(noisy).__module__.split(".")[0]
-        data = np.array(noisy.detach().cpu() if kind == "torch" else noisy, dtype=np.float32)
+        data = np.array(noisy.detach().cpu().numpy() if kind == "torch" else noisy, dtype=np.float32)
         if data.ndim != 3 or data.shape[2] not in (3, 4):
             raise DenoiserError(f"expected HxWx3 or HxWx4 input, got shape {data.shape}")
         aux = [None if a is None else np.array(a, dtype=np.float32)[..., :3] for a in (albedo, normals)]

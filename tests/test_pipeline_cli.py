@@ -1,0 +1,114 @@
+"""render-and-denoise and denoise end to end on 32-px renders; bad input -> one line, exit 1."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pipeline.cli import denoise_main, main
+from pipeline.exr import read_exr, write_exr
+from tests.test_denoise import write_tiny_checkpoint
+
+DEMO = Path(__file__).resolve().parents[1] / "scenes" / "examples" / "demo.xml"
+OUTPUTS = ("noisy.exr", "denoised.exr", "reference.exr", "noisy.png", "denoised.png",
+           "reference.png", "comparison.png", "metrics.json", "report.html", "config.json")
+
+
+@pytest.fixture(scope="module")
+def ckpt(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return write_tiny_checkpoint(tmp_path_factory.mktemp("ckpt") / "tiny.ckpt")
+
+
+@pytest.fixture(scope="module")
+def demo_run(tmp_path_factory: pytest.TempPathFactory, ckpt: Path) -> Path:
+    out = tmp_path_factory.mktemp("run") / "demo"
+    code = main([str(DEMO), "--spp", "4", "--res", "32", "24", "--reference-spp", "64",
+                 "--model", str(ckpt), "--out", str(out), "--quiet"])
+    assert code == 0
+    return out
+
+
+def test_render_and_denoise_writes_everything(demo_run: Path) -> None:
+    for name in OUTPUTS:
+        assert (demo_run / name).stat().st_size > 0, name
+    metrics = json.loads((demo_run / "metrics.json").read_text())
+    assert metrics["resolution"] == [32, 24] and metrics["spp"] == 4
+    assert set(metrics["quality"]) == {"noisy", "denoised"}
+    for row in metrics["quality"].values():
+        for key in ("psnr", "ssim", "relmse", "smape", "flip", "hdr_flip"):
+            assert np.isfinite(row[key]), key
+    assert metrics["model"]["name"] == "tiny.ckpt" and len(metrics["model"]["sha256"]) == 64
+    assert all(v >= 0 for v in metrics["timings"].values())
+    assert read_exr(demo_run / "denoised.exr").rgb.shape == (24, 32, 3)
+    html = (demo_run / "report.html").read_text()
+    assert "data:image/png;base64," in html and "PSNR" in html
+
+
+def test_reference_file_and_no_reference(tmp_path: Path, demo_run: Path, ckpt: Path) -> None:
+    out = tmp_path / "again"
+    assert main([str(DEMO), "--spp", "4", "--res", "32", "24", "--model", str(ckpt), "--quiet",
+                 "--reference", str(demo_run / "reference.exr"), "--out", str(out)]) == 0
+    again = json.loads((out / "metrics.json").read_text())
+    first = json.loads((demo_run / "metrics.json").read_text())
+    assert again["quality"]["noisy"]["psnr"] == pytest.approx(first["quality"]["noisy"]["psnr"], rel=1e-6)
+    bare = tmp_path / "bare"
+    assert main([str(DEMO), "--spp", "2", "--res", "16", "16", "--model", str(ckpt), "--quiet",
+                 "--out", str(bare)]) == 0
+    metrics = json.loads((bare / "metrics.json").read_text())
+    assert "quality" not in metrics and "no reference" in metrics["note"]
+    assert set(metrics["stats"]) == {"noisy", "denoised"}
+
+
+def test_denoise_command(tmp_path: Path, demo_run: Path, ckpt: Path, capsys: pytest.CaptureFixture) -> None:
+    half = tmp_path / "noisy16.exr"
+    write_exr(half, read_exr(demo_run / "noisy.exr").rgb, half=True)
+    out = tmp_path / "out.exr"
+    assert denoise_main([str(half), str(out), "--model", str(ckpt),
+                         "--reference", str(demo_run / "reference.exr")]) == 0
+    printed = json.loads(capsys.readouterr().out)
+    assert set(printed["quality"]) == {"noisy", "denoised"}
+    assert read_exr(out).rgb.shape == (24, 32, 3)
+
+
+def _one_line_error(capsys: pytest.CaptureFixture, code: int, *needles: str) -> None:
+    err = capsys.readouterr().err.strip()
+    assert code != 0
+    assert len(err.splitlines()) == 1 and "Traceback" not in err, err
+    for needle in needles:
+        assert needle in err, err
+
+
+def test_render_bad_input(tmp_path: Path, ckpt: Path, demo_run: Path, capsys: pytest.CaptureFixture) -> None:
+    base = ["--model", str(ckpt), "--quiet", "--spp", "2", "--res", "16", "16"]
+    _one_line_error(capsys, main([str(tmp_path / "nope.xml"), *base, "--out", str(tmp_path / "a")]), "nope.xml")
+    bad = tmp_path / "bad.xml"
+    bad.write_text("<scene version='3.0.0'><shape type='sphere'>")
+    _one_line_error(capsys, main([str(bad), *base, "--out", str(tmp_path / "b")]), "bad.xml")
+    _one_line_error(capsys, main([str(DEMO), *base, "--param", "nosuch=1", "--out", str(tmp_path / "c")]),
+                    "nosuch")
+    _one_line_error(capsys, main([str(DEMO), *base, "--reference", str(demo_run / "reference.exr"),
+                                  "--out", str(tmp_path / "d")]), "reference.exr")
+    _one_line_error(capsys, main([str(DEMO), "--model", str(tmp_path / "no.ckpt"), "--quiet",
+                                  "--out", str(tmp_path / "e")]), "no.ckpt")
+    assert not (tmp_path / "d" / "metrics.json").exists()
+
+
+@pytest.mark.parametrize("args", [["--spp", "0"], ["--spp", "x"], ["--res", "0", "16"], ["--param", "novalue"]])
+def test_render_bad_arguments_exit_2(args: list[str], capsys: pytest.CaptureFixture) -> None:
+    with pytest.raises(SystemExit) as exc:
+        main([str(DEMO), *args])
+    assert exc.value.code == 2 and "Traceback" not in capsys.readouterr().err
+
+
+def test_denoise_bad_input(tmp_path: Path, ckpt: Path, demo_run: Path, capsys: pytest.CaptureFixture) -> None:
+    notexr = tmp_path / "not.exr"
+    notexr.write_text("hello")
+    _one_line_error(capsys, denoise_main([str(notexr), str(tmp_path / "o.exr"), "--model", str(ckpt)]), "not.exr")
+    _one_line_error(capsys, denoise_main([str(tmp_path), str(tmp_path / "o.exr"), "--model", str(ckpt)]))
+    small = tmp_path / "small.exr"
+    write_exr(small, np.ones((8, 8, 3), np.float32))
+    _one_line_error(capsys, denoise_main([str(small), str(tmp_path / "o.exr"), "--model", str(ckpt),
+                                          "--reference", str(demo_run / "reference.exr")]), "reference.exr")
+    assert not (tmp_path / "o.exr").exists()
