@@ -36,7 +36,7 @@ $(VENV)/bin/python:
 
 $(STAMP): pyproject.toml | $(VENV)/bin/python
 	$(PY) -m pip install -q --disable-pip-version-check torch==$(TORCH_VERSION)
-	$(PY) -m pip install -q --disable-pip-version-check -e '.[dev,oidn]'
+	$(PY) -m pip install -q --disable-pip-version-check -e '.[dev,oidn,cluster]'
 	touch $(STAMP)
 
 clean:

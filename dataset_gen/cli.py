@@ -1,6 +1,7 @@
 """``generate-dataset``: render procedural scenes at several spp plus references.
 
 Example: ``generate-dataset --scenes 200 --out data/train --res 128 --spp 4,16,64,128 --ref-spp 4096``
+On a Dask cluster: add ``--scheduler tcp://host:8786`` (or ``--scheduler local:2`` to try it here).
 """
 from __future__ import annotations
 
@@ -9,8 +10,10 @@ import sys
 
 from tqdm import tqdm
 
-from dataset_gen.config import DatasetConfig
+from dataset_gen.cluster import SchedulerSpec, parse_scheduler
+from dataset_gen.config import DatasetConfig, DatasetError
 from dataset_gen.generate import generate_dataset
+from pipeline.cli import OneLineParser
 from pipeline.errors import DenoiserError
 
 
@@ -35,10 +38,17 @@ def _resolution(text: str) -> tuple[int, int]:
     return w, h
 
 
+def _scheduler(text: str) -> SchedulerSpec:
+    try:
+        return parse_scheduler(text)
+    except DatasetError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
 def build_parser() -> argparse.ArgumentParser:
     from scenes.registry import FAMILIES
 
-    p = argparse.ArgumentParser(prog="generate-dataset", description=__doc__.split("\n")[0])
+    p = OneLineParser(prog="generate-dataset", description=__doc__.split("\n")[0])
     p.add_argument("--scenes", type=int, required=True, help="number of scenes (indices 0..N-1)")
     p.add_argument("--out", required=True, help="dataset folder (created; resumed if it exists)")
     p.add_argument("--families", type=lambda s: tuple(f for f in s.split(",") if f),
@@ -52,6 +62,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="also write noisy albedo/normal buffers: alb,nrm")
     p.add_argument("--workers", type=int, default=1,
                    help="parallel scene jobs (1 = Mitsuba uses all cores per render; measured fastest)")
+    p.add_argument("--scheduler", type=_scheduler, default=None,
+                   help="Dask scheduler address (tcp://host:8786): one task per scene on its workers "
+                        "(--out must be on storage they share); local:N starts N local workers")
     p.add_argument("--preview", action="store_true", help="write preview.png, a contact sheet")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
@@ -68,6 +81,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"generate-dataset: unknown family {unknown[0]!r} (known: {', '.join(FAMILIES)})",
               file=sys.stderr)
         return 2
+    if args.scheduler is not None and args.workers != 1:
+        print("generate-dataset: --workers and --scheduler exclude each other (the cluster's workers "
+              "do the work)", file=sys.stderr)
+        return 2
     cfg = DatasetConfig(res=args.res, spp=args.spp, ref_spp=args.ref_spp, families=args.families,
                         seed=args.seed, aovs=args.aovs, val_fraction=args.val_fraction)
     out = Path(args.out)
@@ -76,7 +93,7 @@ def main(argv: list[str] | None = None) -> int:
         return tqdm(total=total, unit="scene", disable=args.quiet, dynamic_ncols=True)
 
     try:
-        summary = generate_dataset(out, cfg, args.scenes, args.workers, bar)
+        summary = generate_dataset(out, cfg, args.scenes, args.workers, bar, args.scheduler)
         if args.preview:
             from dataset_gen.manifest import read_records
             from dataset_gen.preview import contact_sheet

@@ -63,7 +63,7 @@ class DatasetConfig:
         names = {f.name for f in fields(cls)}
         unknown = set(data) - names
         if unknown:
-            raise DatasetError(f"{CONFIG_NAME}: unknown keys {sorted(unknown)}")
+            raise DatasetError(f"unknown keys {sorted(unknown)}")
         tuples = {k: tuple(v) for k, v in data.items() if isinstance(v, list)}
         return cls(**{**data, **tuples})
 
@@ -82,9 +82,13 @@ def load_config(folder: Path) -> DatasetConfig | None:
     if not path.exists():
         return None
     try:
-        return DatasetConfig.from_json(json.loads(path.read_text()))
-    except (json.JSONDecodeError, TypeError, UnicodeDecodeError) as exc:
-        raise DatasetError(f"{path}: unreadable dataset config ({exc})") from None
+        data = json.loads(path.read_text())
+        if not isinstance(data, dict):
+            raise TypeError("not a JSON object")
+        return DatasetConfig.from_json(data)
+    except (json.JSONDecodeError, TypeError, UnicodeDecodeError, DatasetError) as exc:
+        raise DatasetError(f"{path}: not a dataset config this version can use ({exc}); "
+                           "use another --out folder") from None
 
 
 def open_dataset(folder: Path, wanted: DatasetConfig) -> DatasetConfig:

@@ -2,8 +2,9 @@
 
 Each finished scene is appended to the manifest by this (parent) process only, after its files
 are complete. Re-running the same command skips listed scenes; leftover temporary files from a
-crash are removed first. Jobs run in-process (``workers=1``) or in a spawn-started process pool,
-each worker limiting Mitsuba's thread pool to its share of the cores.
+crash are removed first. Jobs run in-process (``workers=1``), in a spawn-started process pool,
+each worker limiting Mitsuba's thread pool to its share of the cores, or as tasks on a Dask
+cluster (``scheduler``, see :mod:`dataset_gen.cluster`).
 """
 from __future__ import annotations
 
@@ -17,6 +18,7 @@ from importlib import metadata
 from pathlib import Path
 from typing import Any, Protocol
 
+from dataset_gen.cluster import SchedulerSpec, render_on_cluster
 from dataset_gen.config import DatasetConfig, DatasetError, open_dataset
 from dataset_gen.jobs import IMAGES_DIR, SCENES_DIR, run_job
 from dataset_gen.manifest import append_record, read_records, repair
@@ -86,8 +88,10 @@ def generate_dataset(
     scenes: int,
     workers: int = 1,
     make_progress: Callable[[int], Progress] | None = None,
+    scheduler: SchedulerSpec | None = None,
 ) -> GenerateSummary:
-    """Render scenes ``0..scenes-1`` of ``cfg`` into ``folder`` (skipping finished ones)."""
+    """Render scenes ``0..scenes-1`` of ``cfg`` into ``folder`` (skipping finished ones), on
+    ``workers`` local processes or, with ``scheduler``, on a Dask cluster (``workers`` unused)."""
     if scenes < 1:
         raise DatasetError(f"--scenes must be >= 1, got {scenes}")
     if workers < 1:
@@ -119,7 +123,9 @@ def generate_dataset(
             progress.set_postfix_str(f"{summary.samples / max(elapsed, 1e-9) / 1e6:.1f} Msamples/s")
 
     try:
-        if workers == 1:
+        if scheduler is not None:
+            render_on_cluster(scheduler, cfg, todo, folder, finish)
+        elif workers == 1:
             for index in todo:
                 try:
                     record, error = run_job(cfg, index, folder), None
@@ -127,7 +133,8 @@ def generate_dataset(
                     record, error = None, exc
                 finish(index, record, error)
         else:
-            threads = max(1, (os.cpu_count() or 1) // workers)
+            # never 1: Dr.Jit with one thread deadlocks loading scenes with textures (measured)
+            threads = max(2, (os.cpu_count() or 1) // workers)
             ctx = multiprocessing.get_context("spawn")
             with cf.ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker,
                                         initargs=(threads,)) as pool:

@@ -47,7 +47,11 @@ def repair(folder: Path) -> None:
 def append_record(folder: Path, record: dict[str, Any]) -> None:
     """Append one record as a line and fsync it."""
     line = json.dumps(record, sort_keys=True) + "\n"
-    with open(folder / MANIFEST_NAME, "a", encoding="utf-8") as fh:
-        fh.write(line)
-        fh.flush()
-        os.fsync(fh.fileno())
+    path = folder / MANIFEST_NAME
+    try:
+        with open(path, "a", encoding="utf-8") as fh:
+            fh.write(line)
+            fh.flush()
+            os.fsync(fh.fileno())
+    except OSError as exc:  # full disk: a torn line at most, dropped by repair() on the next run
+        raise OSError(exc.errno, exc.strerror or str(exc), str(path)) from None

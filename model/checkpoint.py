@@ -75,6 +75,8 @@ def save_checkpoint(path: str | Path, model: Denoiser, *, step: int,
             safetensors.torch.save_file(tensors, str(tmp), metadata={_META_KEY: json.dumps(header)})
     except OSError as exc:
         raise CheckpointError(f"{path}: cannot write ({exc.strerror or exc})") from None
+    except safetensors.SafetensorError as exc:  # e.g. "No space left on device" from the Rust writer
+        raise CheckpointError(f"{path}: cannot write ({str(exc).splitlines()[0]})") from None
 
 
 def _optimizer_header(optimizer: torch.optim.Optimizer) -> dict[str, Any]:

@@ -2,6 +2,7 @@
 
     train --data DIR --out RUN_DIR [--config FILE.json] [--preset fast|balanced|high] [--steps N] ...
     train --out RUN_DIR --resume [--steps N]
+    train --nproc N ...     (DDP on N local processes via torchrun; or: torchrun ... -m model.cli ...)
 
 Precedence for a new run: defaults < ``--config`` JSON (any TrainConfig fields; ``"model"`` may be
 a full ModelConfig object or ``{"preset": "fast", ...overrides}``) < flags. On ``--resume`` the
@@ -18,6 +19,7 @@ from pathlib import Path
 from typing import Any, NoReturn
 
 from model.config import PRESETS, ModelConfig, preset
+from model.distributed import RankInfo, ddp_config, launch, rank_from_env, train_distributed
 from model.errors import ConfigError
 from model.train import resume_config, train
 from model.train_config import TrainConfig
@@ -71,6 +73,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--compile", action="store_const", const=True, help="torch.compile the model")
     p.add_argument("--no-oidn", dest="oidn", action="store_const", const=False, help="skip the OIDN baseline")
     p.add_argument("--no-progress", dest="progress", action="store_const", const=False)
+    p.add_argument("--nproc", type=int, help="train with DDP on this many local processes (launches torchrun; "
+                                             "BatchNorm then works per process: see README)")
     return p
 
 
@@ -118,17 +122,29 @@ def config_from_args(args: argparse.Namespace) -> tuple[TrainConfig, bool]:
 def main(argv: list[str] | None = None) -> int:
     """Entry point: returns the process exit code."""
     args = build_parser().parse_args(argv)
+    rank: RankInfo | None = None
     try:
+        rank = rank_from_env()
         config, resume = config_from_args(args)
+        if args.nproc is not None and args.nproc < 1:
+            raise ConfigError(f"--nproc must be >= 1, got {args.nproc}")
+        if rank is None and args.nproc is not None and args.nproc > 1:
+            ddp_config(config, args.nproc, resume)  # refuse before starting any process
+            launch(args.nproc, sys.argv[1:] if argv is None else argv, Path(args.out))
+            return 0
         from tqdm import tqdm
 
         def progress(total: int, initial: int) -> tqdm:
             return tqdm(total=total, initial=initial, unit="step", dynamic_ncols=True,
                         disable=not config.progress, file=sys.stderr)
 
-        result = train(config, resume=resume, progress=progress)
+        if rank is not None and rank.world > 1:
+            result = train_distributed(config, rank, resume=resume, progress=progress)
+        else:
+            result = train(config, resume=resume, progress=progress)
     except DenoiserError as exc:
-        print(f"train: error: {exc}", file=sys.stderr)
+        tag = f"rank {rank.rank}: " if rank is not None and rank.world > 1 and "rank " not in str(exc) else ""
+        print(f"train: error: {tag}{exc}", file=sys.stderr)
         return 1
     except OSError as exc:
         print(f"train: error: {exc.strerror or exc}: {exc.filename or ''}".rstrip(": "), file=sys.stderr)
@@ -138,6 +154,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"train: interrupted{f'; resume from {last} with --resume' if last.exists() else ''}",
               file=sys.stderr)
         return 130
+    if rank is not None and not rank.primary:
+        return 0
     best = f"{result.best_psnr:.2f} dB" if result.best_psnr is not None else "n/a"
     print(f"trained to step {result.step} (best val PSNR {best}, {result.skipped_steps} skipped steps); "
           f"run in {result.run_dir}")

@@ -93,6 +93,10 @@ class Denoiser(nn.Module):
             self.body = PlainStack(width, config.layers, mid)
         self.tail = nn.Sequential(*_bn_relu_conv(self.body.out_channels, 3, 3))
         init_weights(self)
+        if config.output == "residual":
+            # The correction starts at zero: the untrained model is the identity (the noisy input),
+            # not a He-scaled random image that the log transfer would blow up to ~1e4 radiance.
+            nn.init.zeros_(self.tail[-1].weight)
 
     def forward(self, image: torch.Tensor) -> torch.Tensor:
         out = self.tail(self.body(self.head(network_input(image))))

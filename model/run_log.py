@@ -33,8 +33,11 @@ class RunLog:
 
     def append(self, record: dict[str, Any]) -> None:
         """Append one record as a JSON line and flush it."""
-        with open(self.path, "a", encoding="utf-8") as fh:
-            fh.write(json.dumps(_finite(record), allow_nan=False) + "\n")
+        try:
+            with open(self.path, "a", encoding="utf-8") as fh:
+                fh.write(json.dumps(_finite(record), allow_nan=False) + "\n")
+        except OSError as exc:  # e.g. a full disk: name the log (a torn line is skipped by read())
+            raise OSError(exc.errno, exc.strerror or str(exc), str(self.path)) from None
 
     def read(self) -> list[dict[str, Any]]:
         """All complete records (a torn last line from a crash is ignored)."""

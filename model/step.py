@@ -8,6 +8,7 @@ weights. :class:`NonFiniteGuard` counts such steps and raises :class:`TrainingEr
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
@@ -55,7 +56,8 @@ class StepResult:
 def train_step(model: torch.nn.Module, optimizer: torch.optim.Optimizer, noisy: torch.Tensor,
                ref: torch.Tensor, *, step: int, lr: float, guard: NonFiniteGuard,
                grad_clip: float | None = None, bf16: bool = False,
-               micro_batch: int | None = None) -> StepResult:
+               micro_batch: int | None = None,
+               reduce_loss: Callable[[float], float] | None = None) -> StepResult:
     """Forward, loss, backward and (unless NaN/Inf) an optimiser update on one batch.
 
     ``noisy``: NxCxHxW transfer-space input, ``ref``: Nx3xHxW transfer-space target.
@@ -63,6 +65,9 @@ def train_step(model: torch.nn.Module, optimizer: torch.optim.Optimizer, noisy: 
     ``micro_batch`` splits the batch into chunks of that size whose gradients are accumulated
     (the update still averages over all N patches, but BatchNorm normalises each chunk with its
     own statistics and updates its running statistics once per chunk).
+    ``reduce_loss`` maps each chunk's loss to the value all data-parallel processes agree on (the
+    mean over DDP ranks, NaN if any rank's is NaN), so that every rank skips the same steps;
+    None keeps this process's own value.
     """
     for group in optimizer.param_groups:
         group["lr"] = lr
@@ -75,6 +80,8 @@ def train_step(model: torch.nn.Module, optimizer: torch.optim.Optimizer, noisy: 
             out = model(noisy[start:start + size])
         loss = denoising_loss(out, ref[start:start + size]) * (len(out) / len(noisy))
         chunk_loss = float(loss.detach())
+        if reduce_loss is not None:
+            chunk_loss = reduce_loss(chunk_loss)
         loss_value += chunk_loss
         if not math.isfinite(chunk_loss):
             optimizer.zero_grad(set_to_none=True)

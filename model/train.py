@@ -8,6 +8,7 @@ state, LR schedule (a function of the step) and the torch RNG come from ``last.c
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import time
@@ -31,7 +32,7 @@ from model.step import NonFiniteGuard, learning_rate, train_step
 from model.train_config import RESUMABLE_OVERRIDES, TrainConfig
 from model.transfer import get_transfer
 from model.validate import Validator
-from pipeline.atomic_io import write_text_atomic
+from pipeline.atomic_io import TMP_PREFIX, write_text_atomic
 
 # dataset.json fields a resumed run must see unchanged
 _DATA_KEYS = ("spp", "ref_spp", "filter", "aovs")
@@ -132,8 +133,17 @@ def _check_data_config(data_config: dict[str, Any], ckpt: Checkpoint | None, con
                                f"({', '.join(f'{k}: {saved.get(k)!r} -> {data_config.get(k)!r}' for k in diff)})")
 
 
+def _remove_temporaries(folder: Path) -> None:
+    """Delete half-written files (``.tmp-*``) that a killed run left; never a finished file."""
+    for leftover in folder.glob(f"{TMP_PREFIX}*"):
+        leftover.unlink(missing_ok=True)
+
+
 class _Run:
     """State of one training run; :func:`train` drives it."""
+
+    primary = True  # writes the run's files (under DDP only rank 0 does: model.distributed)
+    reduce_loss: Callable[[float], float] | None = None  # chunk loss -> the value all DDP ranks agree on
 
     def __init__(self, config: TrainConfig, resume: bool) -> None:
         self.config = config
@@ -159,19 +169,23 @@ class _Run:
         self.best_psnr: float | None = extra.get("best_psnr")
         self.guard = NonFiniteGuard(config.max_bad_steps, int(extra.get("skipped_total", 0)))
         self.meter = _LossMeter(**extra.get("meter", {}))
+        self.train_s = float(extra.get("train_s", 0.0))  # optimisation seconds so far, all sittings
         self.saved_step: int | None = self.step if ckpt else None
         if ckpt:
             self.log.truncate_after(self.step)
 
     def _open(self, resume: bool) -> Checkpoint | None:
         if resume:
-            return read_checkpoint(self.last_path)
+            ckpt = read_checkpoint(self.last_path)
+            _remove_temporaries(self.dir)
+            return ckpt
         if self.last_path.exists():
             raise ConfigError(f"{self.dir} already holds a run (last.ckpt); use --resume or another --out")
         if not self.dir.parent.is_dir():
             raise ConfigError(f"{self.dir.parent}: output parent folder does not exist")
         self.dir.mkdir(exist_ok=True)
         self.log.path.unlink(missing_ok=True)
+        _remove_temporaries(self.dir)
         return None
 
     def _build(self, ckpt: Checkpoint | None) -> tuple[Denoiser, torch.optim.Adam]:
@@ -191,13 +205,21 @@ class _Run:
             restore_rng(ckpt)
         return model, optimizer
 
+    def network(self) -> torch.nn.Module:
+        """The module the steps run: the model (compiled with ``compile``)."""
+        return _compiled(self)
+
+    def batch_source(self) -> BatchSource:
+        """Where the batch of each step comes from."""
+        return BatchSource(self.pairs, self.config)
+
     def save(self, path: Path) -> None:
         """Checkpoint the current state to ``path`` atomically."""
         meter = {"total": self.meter.total, "count": self.meter.count, "skipped": self.meter.skipped}
         save_checkpoint(path, self.model, step=self.step, optimizer=self.optimizer,
                         train_config=self.config.to_dict(), data_config=self.data_config,
                         extra={"best_psnr": self.best_psnr, "skipped_total": self.guard.skipped_total,
-                               "meter": meter})
+                               "meter": meter, "train_s": self.train_s})
         if path == self.last_path:
             self.saved_step = self.step
 
@@ -205,10 +227,12 @@ class _Run:
         """Write the mean loss since the last train line and reset the meter."""
         m = self.meter
         elapsed = time.perf_counter() - m.started - m.paused
+        self.train_s += max(elapsed, 0.0)
         self.log.append({"type": "train", "step": self.step, "loss": m.total / m.count if m.count else None,
                          "lr": learning_rate(self.config.lr, self.config.lr_decay, self.config.lr_decay_every,
                                              self.step - 1),
                          "skipped": m.skipped, "skipped_total": self.guard.skipped_total,
+                         "train_s": self.train_s,
                          "patches_per_s": (m.count + m.skipped) * self.config.batch / elapsed
                          if elapsed > 0 else None})
         self.meter = _LossMeter()
@@ -230,7 +254,8 @@ def _one_step(run: _Run, net: torch.nn.Module, source: BatchSource, bar: Progres
     noisy, ref = source.get(run.step)
     lr = learning_rate(config.lr, config.lr_decay, config.lr_decay_every, run.step)
     result = train_step(net, run.optimizer, noisy, ref, step=run.step, lr=lr, guard=run.guard,
-                        grad_clip=config.grad_clip, bf16=config.bf16, micro_batch=config.micro_batch)
+                        grad_clip=config.grad_clip, bf16=config.bf16, micro_batch=config.micro_batch,
+                        reduce_loss=run.reduce_loss)
     run.step += 1
     if result.skipped:
         run.meter.skipped += 1
@@ -267,10 +292,16 @@ def train(config: TrainConfig, resume: bool = False, progress: ProgressFactory |
     """
     if config.threads:
         torch.set_num_threads(config.threads)
-    run = _Run(config, resume)
-    write_text_atomic(run.dir / "train_config.json", json.dumps(config.to_dict(), indent=2) + "\n")
-    net = _compiled(run)
-    source = BatchSource(run.pairs, config)
+    return run_training(_Run(config, resume), progress)
+
+
+def run_training(run: _Run, progress: ProgressFactory | None = None) -> TrainResult:
+    """Step ``run`` up to its config's ``steps``: the loop of :func:`train`, shared with DDP."""
+    config = run.config
+    if run.primary:
+        write_text_atomic(run.dir / "train_config.json", json.dumps(config.to_dict(), indent=2) + "\n")
+    net = run.network()
+    source = run.batch_source()
     bar = progress(config.steps, run.step) if progress is not None else None
     try:
         if run.step < config.steps and config.compile:
@@ -288,7 +319,9 @@ def train(config: TrainConfig, resume: bool = False, progress: ProgressFactory |
         source.close()
         if bar is not None:
             bar.close()
-        plot_curves(run.log.read(), run.dir / "curves.png")
+        if run.primary:
+            with contextlib.suppress(OSError):  # a full disk here must not hide why the run stopped
+                plot_curves(run.log.read(), run.dir / "curves.png")
     if run.saved_step != run.step:
         run.save(run.last_path)
     return TrainResult(run.dir, run.step, run.best_psnr, run.guard.skipped_total)

@@ -5,6 +5,7 @@ import argparse
 import json
 import sys
 from pathlib import Path
+from typing import NoReturn
 
 from pipeline.errors import DenoiserError
 
@@ -16,6 +17,16 @@ def _positive_int(text: str) -> int:
         raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
     if value < 1:
         raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
+    return value
+
+
+def _positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}") from None
+    if not value > 0 or value == float("inf"):
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}")
     return value
 
 
@@ -32,14 +43,23 @@ def _fail(prog: str, exc: BaseException) -> int:
     return 1
 
 
+class OneLineParser(argparse.ArgumentParser):
+    """An ArgumentParser whose usage errors are one line on stderr (exit 2), without the usage text."""
+
+    def error(self, message: str) -> NoReturn:
+        print(f"{self.prog}: error: {message} (see --help)", file=sys.stderr)
+        raise SystemExit(2)
+
+
 def render_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="render-and-denoise",
-                                description="Render a Mitsuba scene, denoise it, report metrics.")
+    p = OneLineParser(prog="render-and-denoise",
+                      description="Render a Mitsuba scene, denoise it, report metrics.")
     p.add_argument("scene", help="Mitsuba 3 scene XML file")
-    p.add_argument("--spp", type=_positive_int, default=128, help="samples per pixel (128)")
+    p.add_argument("--spp", type=_positive_int, help="samples per pixel (128)")
     p.add_argument("--res", type=_positive_int, nargs=2, metavar=("W", "H"), help="resolution")
     p.add_argument("--seed", type=int, default=0, help="render seed")
-    p.add_argument("--model", help="checkpoint (default: the shipped weights)")
+    p.add_argument("--model", help="checkpoint or preset name (default: the shipped weights); "
+                   "'auto' with --time-budget")
     ref = p.add_mutually_exclusive_group()
     ref.add_argument("--reference", help="reference EXR of the same size")
     ref.add_argument("--reference-spp", type=_positive_int, help="render a reference at N spp")
@@ -49,20 +69,29 @@ def render_parser() -> argparse.ArgumentParser:
                    help="scene $parameter")
     p.add_argument("--out", help="output folder (default: the scene's name)")
     p.add_argument("--max-memory-mb", type=float, default=1024.0, help="tile memory bound")
+    p.add_argument("--time-budget", type=_positive_float, metavar="SECONDS",
+                   help="choose spp (and, with --model auto, the preset) to finish within SECONDS")
+    p.add_argument("--curves", metavar="TRADEOFF_JSON",
+                   help="trade curves (a tradeoff run's tradeoff.json) for --model auto")
     p.add_argument("--quiet", action="store_true", help="no summary on stdout")
     return p
 
 
 def main(argv: list[str] | None = None) -> int:
     """``render-and-denoise scene.xml [...]``."""
-    args = render_parser().parse_args(argv)
+    parser = render_parser()
+    args = parser.parse_args(argv)
+    if args.time_budget is None and (args.model == "auto" or args.curves):
+        parser.error("--model auto and --curves need --time-budget")
+    if args.time_budget is not None and args.spp is not None:
+        parser.error("--spp and --time-budget exclude each other (the budget chooses the spp)")
     from pipeline.run import RunConfig, run, summary_lines
 
-    cfg = RunConfig(scene=args.scene, out=args.out or Path(args.scene).stem, spp=args.spp,
+    cfg = RunConfig(scene=args.scene, out=args.out or Path(args.scene).stem, spp=args.spp or 128,
                     resolution=tuple(args.res) if args.res else None, seed=args.seed,
                     model=args.model, reference=args.reference, reference_spp=args.reference_spp,
                     compare_oidn="oidn" in args.compare, params=dict(args.param),
-                    max_memory_mb=args.max_memory_mb)
+                    max_memory_mb=args.max_memory_mb, time_budget=args.time_budget, curves=args.curves)
     log = (lambda s: None) if args.quiet else (lambda s: print(f"... {s}", file=sys.stderr))
     try:
         metrics = run(cfg, log)
@@ -79,7 +108,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def denoise_main(argv: list[str] | None = None) -> int:
     """``denoise IN.exr OUT.exr [--model PATH] [--reference REF.exr]``."""
-    p = argparse.ArgumentParser(prog="denoise", description="Denoise an EXR rendered elsewhere.")
+    p = OneLineParser(prog="denoise", description="Denoise an EXR rendered elsewhere.")
     p.add_argument("input")
     p.add_argument("output")
     p.add_argument("--model", help="checkpoint (default: the shipped weights)")
@@ -93,6 +122,70 @@ def denoise_main(argv: list[str] | None = None) -> int:
     except (DenoiserError, OSError, ValueError) as exc:
         return _fail("denoise", exc)
     print(json.dumps(result, indent=1))
+    return 0
+
+
+def _int_list(text: str) -> list[int]:
+    return [_positive_int(part) for part in text.split(",") if part.strip()]
+
+
+def tradeoff_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="tradeoff", description="Measure error against time for each "
+                                "spp and denoiser; plot, Pareto frontier, equal-quality savings.")
+    p.add_argument("scene", help="Mitsuba 3 scene XML file")
+    p.add_argument("--spp", type=_int_list, default=[1, 2, 4, 8, 16, 32, 64, 128, 256, 512, 1024],
+                   help="comma-separated spp levels (1,2,4,...,1024)")
+    p.add_argument("--models", type=lambda t: [m for m in t.split(",") if m], default=None,
+                   help="comma-separated presets (model/weights/<name>.ckpt) or checkpoint paths "
+                        "(fast,balanced,high)")
+    p.add_argument("--compare", choices=["oidn"], action="append", default=[],
+                   help="also measure OIDN colour-only (needs pyoidn)")
+    ref = p.add_mutually_exclusive_group(required=True)
+    ref.add_argument("--reference", help="reference EXR of the same size")
+    ref.add_argument("--reference-spp", type=_positive_int, help="render a reference at N spp")
+    p.add_argument("--repeat", type=_positive_int, default=3, help="timing repeats, median kept (3)")
+    p.add_argument("--metric", choices=["relmse", "psnr", "flip"], default="relmse",
+                   help="error of the plot, frontier and saving table (relmse)")
+    p.add_argument("--res", type=_positive_int, nargs=2, metavar=("W", "H"), help="resolution")
+    p.add_argument("--seed", type=int, default=0, help="render seed")
+    p.add_argument("--param", type=_param, action="append", default=[], metavar="NAME=VALUE",
+                   help="scene $parameter")
+    p.add_argument("--out", help="output folder (default: <scene name>-tradeoff)")
+    p.add_argument("--max-memory-mb", type=float, default=1024.0, help="tile memory bound")
+    p.add_argument("--quiet", action="store_true", help="no progress bar and no table")
+    return p
+
+
+def tradeoff_main(argv: list[str] | None = None) -> int:
+    """``tradeoff scene.xml [--spp ...] [--models ...] [--compare oidn] (--reference F |
+    --reference-spp N)``."""
+    args = tradeoff_parser().parse_args(argv)
+    from tqdm import tqdm
+
+    from pipeline.tradeoff import DEFAULT_MODELS, TradeoffConfig, run_tradeoff
+    from pipeline.tradeoff_report import saving_table
+
+    cfg = TradeoffConfig(scene=args.scene, out=args.out or f"{Path(args.scene).stem}-tradeoff",
+                         spp=args.spp,
+                         models=args.models if args.models is not None else list(DEFAULT_MODELS),
+                         compare_oidn="oidn" in args.compare, reference=args.reference,
+                         reference_spp=args.reference_spp, repeat=args.repeat,
+                         resolution=tuple(args.res) if args.res else None, seed=args.seed,
+                         params=dict(args.param), metric=args.metric, max_memory_mb=args.max_memory_mb)
+
+    def bar(total: int) -> tqdm:
+        return tqdm(total=total, unit="step", disable=args.quiet, dynamic_ncols=True)
+
+    try:
+        result = run_tradeoff(cfg, bar)
+    except (DenoiserError, OSError, ValueError) as exc:
+        return _fail("tradeoff", exc)
+    except KeyboardInterrupt:
+        print("tradeoff: interrupted", file=sys.stderr)
+        return 130
+    if not args.quiet:
+        print("\n".join(saving_table(result)))
+        print(f"outputs: {cfg.out}/ (tradeoff.json, tradeoff.csv, tradeoff.png)")
     return 0
 
 

@@ -18,8 +18,31 @@ import numpy as np
 from pipeline.errors import DenoiserError
 from pipeline.tiling import core_for_budget, run_tiled
 
-DEFAULT_WEIGHTS = Path(__file__).resolve().parents[1] / "model" / "weights" / "default.ckpt"
+WEIGHTS_DIR = Path(__file__).resolve().parents[1] / "model" / "weights"
+DEFAULT_WEIGHTS = WEIGHTS_DIR / "default.ckpt"
 DEFAULT_MAX_MEMORY_MB = 1024
+
+
+def resolve_model(name: str | Path | None) -> Path:
+    """Checkpoint file of a ``--model`` value: None -> the shipped default, a preset name (``fast``,
+    ``balanced``, ``high``) -> ``model/weights/<name>.ckpt``, anything else -> a path.
+
+    Raises :class:`DenoiserError` naming the file when the default or a preset's weights are missing.
+    """
+    from model.config import PRESETS
+
+    if name is None:
+        if not DEFAULT_WEIGHTS.exists():
+            raise DenoiserError(f"{DEFAULT_WEIGHTS}: no default weights are shipped yet; pass --model "
+                                "PATH (a checkpoint written by `train`)")
+        return DEFAULT_WEIGHTS
+    if str(name) in PRESETS and not Path(name).exists():
+        path = WEIGHTS_DIR / f"{name}.ckpt"
+        if not path.exists():
+            raise DenoiserError(f"{path}: no weights for model preset '{name}' yet (train them, or pass "
+                                "a checkpoint file)")
+        return path
+    return Path(name)
 
 
 @dataclass
@@ -35,8 +58,10 @@ class DenoiseResult:
 
 def count_invalid(rgb: np.ndarray) -> tuple[int, int]:
     """Numbers of non-finite and of negative values in an image (both are replaced by 0)."""
-    finite = np.isfinite(rgb)
-    return int((~finite).sum()), int((rgb[finite] < 0).sum())
+    nonfinite = rgb.size - int(np.count_nonzero(np.isfinite(rgb)))
+    with np.errstate(invalid="ignore"):  # no copies: this runs on 8K images
+        negative = int(np.count_nonzero(rgb < 0)) - int(np.count_nonzero(np.isneginf(rgb)))
+    return nonfinite, negative
 
 
 def file_sha256(path: Path) -> str:
@@ -51,28 +76,31 @@ def file_sha256(path: Path) -> str:
 class Denoiser:
     """A trained model ready to denoise HxWx3 linear radiance on the CPU.
 
-    ``checkpoint``: a file written by ``train`` (default: the shipped ``model/weights``).
+    ``checkpoint``: a file written by ``train`` or a preset name (:func:`resolve_model`; default:
+    the shipped ``model/weights/default.ckpt``).
     ``max_memory_mb`` bounds the activations of one tile; ``threads`` sets torch's CPU threads.
+    ``optimize``: run the folded, concatenation-free copy of the model
+    (:mod:`model.inference_net`, equal up to float32 rounding) instead of the training module.
     """
 
     def __init__(self, checkpoint: str | Path | None = None,
-                 max_memory_mb: float = DEFAULT_MAX_MEMORY_MB, threads: int | None = None) -> None:
+                 max_memory_mb: float = DEFAULT_MAX_MEMORY_MB, threads: int | None = None,
+                 optimize: bool = True) -> None:
         import torch
 
         from model.checkpoint import load_model
         from model.infer import receptive_radius
+        from model.inference_net import prepare_for_inference
 
-        path = Path(checkpoint) if checkpoint is not None else DEFAULT_WEIGHTS
-        if checkpoint is None and not path.exists():
-            raise DenoiserError(f"{path}: no default weights are shipped yet; pass --model PATH "
-                                "(a checkpoint written by `train`)")
-        if max_memory_mb <= 0:
-            raise DenoiserError(f"max memory must be positive, got {max_memory_mb} MB")
+        path = resolve_model(checkpoint)
+        if not 0 < max_memory_mb < float("inf"):  # also refuses NaN
+            raise DenoiserError(f"max memory must be positive and finite, got {max_memory_mb} MB")
         if threads:
             torch.set_num_threads(int(threads))
         self.path = path
         self.model, self.config, self.meta = load_model(path)
         self.model.eval()
+        self.net = prepare_for_inference(self.model) if optimize else self.model
         self.max_memory_mb = float(max_memory_mb)
         self.margin = receptive_radius(self.config)
 
@@ -119,7 +147,7 @@ class Denoiser:
                     raise DenoiserError(f"AOV shape {np.shape(buffer)} differs from image {rgb.shape}")
             aux = np.concatenate([np.asarray(albedo, np.float32), np.asarray(normals, np.float32)], axis=2)
         count = [0]
-        out = denoise_image(self.model, rgb, aux, self.core_size(),
+        out = denoise_image(self.net, rgb, aux, self.core_size(),
                             progress=lambda n, total: count.__setitem__(0, total))
         return DenoiseResult(out, nonfinite, negative, time.perf_counter() - start, count[0])
 

@@ -6,7 +6,13 @@ Layout: images are HxWx3 float32 (linear radiance for RGB). Extra layers are sto
 """
 from __future__ import annotations
 
-from collections.abc import Mapping
+import contextlib
+import ctypes
+import io
+import os
+import sys
+import threading
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -17,6 +23,9 @@ from pipeline.atomic_io import atomic_path
 from pipeline.errors import ExrError
 
 XYZ_LAYERS = ("normal", "sh_normal", "nrm")
+HALF_MAX = 65504.0  # largest finite float16
+_LIBC = ctypes.CDLL(None)
+_QUIET_LOCK = threading.Lock()
 _STANDARD_KEYS = {"channels", "compression", "dataWindow", "displayWindow", "lineOrder",
                   "pixelAspectRatio", "screenWindowCenter", "screenWindowWidth", "type"}
 
@@ -44,6 +53,15 @@ def _check_image(name: str, img: np.ndarray, shape: tuple[int, ...] | None) -> n
     return img
 
 
+def _plane(values: np.ndarray, half: bool) -> np.ndarray:
+    """One channel as contiguous float32, or float16 with finite values beyond +-65504 saturated
+    (a plain cast would turn them into Inf)."""
+    if not half:
+        return np.ascontiguousarray(values, dtype=np.float32)
+    saturated = np.where(np.isfinite(values), np.clip(values, -HALF_MAX, HALF_MAX), values)
+    return np.ascontiguousarray(saturated, dtype=np.float16)
+
+
 def write_exr(
     path: str | Path,
     rgb: np.ndarray,
@@ -51,17 +69,17 @@ def write_exr(
     metadata: Mapping[str, str | int | float] | None = None,
     half: bool = False,
 ) -> None:
-    """Write an EXR atomically (ZIP compression), float32 or, with ``half``, float16 pixels."""
+    """Write an EXR atomically (ZIP compression), float32 or, with ``half``, float16 pixels
+    (finite values beyond the float16 range saturate at +-65504)."""
     path = Path(path)
     rgb = _check_image("RGB", rgb, None)
-    dtype = np.float16 if half else np.float32
     channels: dict[str, np.ndarray] = {}
     for c, suffix in enumerate("RGB"):
-        channels[suffix] = np.ascontiguousarray(rgb[:, :, c], dtype=dtype)
+        channels[suffix] = _plane(rgb[:, :, c], half)
     for layer, img in (layers or {}).items():
         img = _check_image(layer, img, rgb.shape)
         for c, suffix in enumerate(layer_suffixes(layer)):
-            channels[f"{layer}.{suffix}"] = np.ascontiguousarray(img[:, :, c], dtype=dtype)
+            channels[f"{layer}.{suffix}"] = _plane(img[:, :, c], half)
     header: dict[str, object] = {"compression": OpenEXR.ZIP_COMPRESSION}
     for key, value in (metadata or {}).items():
         if key in _STANDARD_KEYS or not isinstance(value, (str, int, float)) or isinstance(value, bool):
@@ -78,6 +96,30 @@ def write_exr(
         raise ExrError(f"{path}: cannot write ({str(exc).splitlines()[0]})") from None
 
 
+@contextlib.contextmanager
+def _quiet_native_output() -> Iterator[None]:
+    """Send what OpenEXR's C/C++ code prints on a corrupt file (to stdout and stderr) to /dev/null:
+    the one-line :class:`ExrError` replaces it. One reader at a time: threads that interleaved
+    their saves and restores of the descriptors could leave stdout pointing at /dev/null."""
+    with _QUIET_LOCK:
+        for stream in (sys.stdout, sys.stderr):
+            if stream is not None:
+                stream.flush()
+        saved = [os.dup(1), os.dup(2)]
+        try:
+            with open(os.devnull, "wb") as null:
+                os.dup2(null.fileno(), 1)
+                os.dup2(null.fileno(), 2)
+            with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+                yield  # the binding's warnings go through Python's sys.stdout, the C core's to fd 2
+        finally:
+            _LIBC.fflush(None)  # C stdio buffers (where C++ std::cout writes) still hold their text
+            os.dup2(saved[0], 1)
+            os.dup2(saved[1], 2)
+            for fd in saved:
+                os.close(fd)
+
+
 def read_exr(path: str | Path) -> ExrImage:
     """Read an EXR with R, G, B channels (float16 or float32) into float32 arrays.
 
@@ -92,7 +134,7 @@ def read_exr(path: str | Path) -> ExrImage:
         if fh.read(4) != b"\x76\x2f\x31\x01":
             raise ExrError(f"{path}: not an OpenEXR file")
     try:
-        with OpenEXR.File(str(path), separate_channels=True) as exr:
+        with _quiet_native_output(), OpenEXR.File(str(path), separate_channels=True) as exr:
             header = dict(exr.header())
             channels = {k: np.array(v.pixels) for k, v in exr.channels().items()}
     except (RuntimeError, ValueError, OSError) as exc:

@@ -70,6 +70,7 @@ def load_scene(prepared: PreparedScene) -> Any:
         for p in saved:
             resolver.append(p)
     _check_box_filter(scene, prepared.source)
+    _check_renderable(scene, prepared.source)
     return scene
 
 
@@ -78,6 +79,16 @@ def _check_box_filter(scene: Any, source: str) -> None:
         name = str(sensor.film().rfilter()).split("[", 1)[0].strip()
         if name != "BoxFilter":
             raise SceneError(f"{source}: film pixel filter is {name}, expected BoxFilter")
+
+
+def _check_renderable(scene: Any, source: str) -> None:
+    """What ``mi.render`` would otherwise fail on with a multi-line error or a bare ``Exception``."""
+    if scene.integrator() is None:
+        raise SceneError(f"{source}: the scene has no <integrator> (add e.g. <integrator type=\"path\"/>)")
+    for sensor in scene.sensors():
+        width, height = (int(v) for v in sensor.film().crop_size())
+        if width < 1 or height < 1:
+            raise SceneError(f"{source}: film size is {width}x{height}; it must be at least 1x1")
 
 
 def prepare(

@@ -1,8 +1,8 @@
 """``render-and-denoise``'s core: render a scene, denoise it, compare, write files and a report.
 
 Outputs in ``out``: noisy.exr, denoised.exr (+ oidn.exr, reference.exr), a PNG preview of each,
-comparison.png, metrics.json (written last: a run without it did not finish), report.html and
-config.json (the run's settings).
+comparison.png, metrics.json (written last: a run without it did not finish; a re-run into the
+same folder deletes the old one first), report.html and config.json (the run's settings).
 """
 from __future__ import annotations
 
@@ -17,7 +17,8 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.atomic_io import write_text_atomic
+from pipeline.atomic_io import TMP_PREFIX, write_text_atomic
+from pipeline.budget import budget_candidates, plan_run
 from pipeline.denoise import Denoiser
 from pipeline.errors import DenoiserError
 from pipeline.exr import read_exr, write_exr
@@ -43,6 +44,8 @@ class RunConfig:
     compare_oidn: bool = False
     params: dict[str, str] = field(default_factory=dict)
     max_memory_mb: float = 1024.0
+    time_budget: float | None = None  # seconds: spp (and, with model "auto", the model) chosen to fit
+    curves: str | None = None  # tradeoff.json guiding the model choice under a time budget
 
 
 def _json_safe(value: Any) -> Any:
@@ -72,6 +75,10 @@ def _check_out(out: Path) -> None:
     try:
         probe.write_bytes(b"")
         probe.unlink()
+        # A re-run into the folder of an earlier run: its completion marker (and the report that
+        # goes with it) must not sit beside new, possibly unfinished outputs; nor leftovers of a crash.
+        for stale in [out / "metrics.json", out / "report.html", *out.glob(f"{TMP_PREFIX}*")]:
+            stale.unlink(missing_ok=True)
     except OSError as exc:
         raise DenoiserError(f"{out}: output folder is not writable ({exc.strerror or exc})") from None
 
@@ -82,22 +89,30 @@ def run(cfg: RunConfig, log: Callable[[str], None] = lambda s: None) -> dict[str
         raise DenoiserError("give either --reference or --reference-spp, not both")
     out = Path(cfg.out)
     t_start = time.perf_counter()
-    denoiser = Denoiser(cfg.model, max_memory_mb=cfg.max_memory_mb)
+    candidates = budget_candidates(cfg.model, cfg.max_memory_mb) if cfg.time_budget is not None else {}
+    denoiser = (next(iter(candidates.values())) if candidates
+                else Denoiser(cfg.model, max_memory_mb=cfg.max_memory_mb))
     reference = read_exr(cfg.reference).rgb if cfg.reference else None
     _check_out(out)
     write_text_atomic(out / "config.json", json.dumps(asdict(cfg), indent=1) + "\n")
 
-    aovs = ("albedo", "sh_normal") if denoiser.needs_aovs else ()
+    aovs = ("albedo", "sh_normal") if any(d.needs_aovs for d in (denoiser, *candidates.values())) else ()
     t0 = time.perf_counter()
     scene = load_scene(prepare(cfg.scene, cfg.resolution, aovs, cfg.params))
     t_load = time.perf_counter() - t0
-    log(f"rendering {cfg.spp} spp")
-    noisy = render_loaded(scene, cfg.spp, cfg.seed, aovs)
+    spp, plan = cfg.spp, None
+    if candidates:
+        plan = plan_run(cfg.time_budget, t_start, scene, cfg.seed, aovs, candidates, cfg.curves, log)
+        denoiser, spp = candidates[plan.model], plan.spp
+    log(f"rendering {spp} spp")
+    noisy = render_loaded(scene, spp, cfg.seed, aovs)
     if reference is not None and reference.shape != noisy.rgb.shape:
         raise DenoiserError(f"{cfg.reference}: reference is {reference.shape[1]}x{reference.shape[0]}"
                             f", render is {noisy.rgb.shape[1]}x{noisy.rgb.shape[0]}")
     log(f"denoising with {denoiser.name}")
     result = denoiser.denoise_array(noisy.rgb, noisy.aovs.get("albedo"), noisy.aovs.get("sh_normal"))
+    if plan:
+        plan.actual_s = time.perf_counter() - t_start
     images = {"noisy": noisy.rgb, "denoised": result.image}
     timings = {"scene_load_s": t_load, "render_s": noisy.seconds, "denoise_s": result.seconds}
     if cfg.compare_oidn:
@@ -110,7 +125,7 @@ def run(cfg: RunConfig, log: Callable[[str], None] = lambda s: None) -> dict[str
     if reference is not None:
         images["reference"] = reference
 
-    meta = {"scene": Path(cfg.scene).stem, "spp": cfg.spp, "seed": cfg.seed}
+    meta = {"scene": Path(cfg.scene).stem, "spp": spp, "seed": cfg.seed}
     for name, img in images.items():
         write_exr(out / f"{name}.exr", img, metadata={**meta, "image": name})
     pngs = write_previews(out, images)
@@ -121,12 +136,14 @@ def run(cfg: RunConfig, log: Callable[[str], None] = lambda s: None) -> dict[str
     timings["total_s"] = time.perf_counter() - t_start
     h, w = noisy.rgb.shape[:2]
     metrics: dict[str, Any] = {
-        "scene": str(cfg.scene), "spp": cfg.spp, "resolution": [w, h], "seed": cfg.seed,
+        "scene": str(cfg.scene), "spp": spp, "resolution": [w, h], "seed": cfg.seed,
         "model": {"name": denoiser.name, "sha256": denoiser.sha256, "config": denoiser.config.to_dict()},
         "mitsuba": metadata.version("mitsuba"), "variant": noisy.variant, "timings": timings,
         "sanitized": {"render_nonfinite_pixels": noisy.nonfinite, "denoiser_nonfinite_values":
                       result.nonfinite, "denoiser_negative_values": result.negative},
     }
+    if plan:
+        metrics["budget"] = plan.to_dict()
     if reference is not None:
         metrics["quality"] = {n: all_metrics(img, reference) for n, img in images.items()
                               if n != "reference"}
@@ -146,6 +163,11 @@ def summary_lines(metrics: dict[str, Any]) -> list[str]:
     lines = [f"{metrics['scene']}: {metrics['resolution'][0]}x{metrics['resolution'][1]} at "
              f"{metrics['spp']} spp, model {metrics['model']['name']} ({metrics['variant']})",
              "timings: " + ", ".join(f"{k[:-2]} {v:.2f}s" for k, v in t.items())]
+    budget = metrics.get("budget")
+    if budget:
+        lines.append(f"time budget {budget['budget_s']:g} s: chose {budget['model']} at {budget['spp']} spp "
+                     f"({budget['rule']}); predicted {budget['predicted_s']:.2f} s, actual "
+                     f"{budget['actual_s']:.2f} s")
     quality = metrics.get("quality")
     if quality:
         lines.append(f"{'':10}{'PSNR dB':>9}{'SSIM':>8}{'relMSE':>10}{'FLIP':>8}")

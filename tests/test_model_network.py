@@ -92,3 +92,12 @@ def test_channels_last_same_output() -> None:
         ref = model(img)
         out = model.to(memory_format=torch.channels_last)(img.contiguous(memory_format=torch.channels_last))
     torch.testing.assert_close(out, ref, rtol=1e-5, atol=1e-5)
+
+
+def test_untrained_residual_model_is_identity_direct_is_not() -> None:
+    torch.manual_seed(0)
+    img = torch.rand(1, 3, 12, 12) * 0.1
+    with torch.no_grad():
+        assert torch.equal(build_model(TINY).eval()(img), img)
+        direct = build_model(ModelConfig(layers=2, growth=4, init_features=8, output="direct")).eval()
+        assert float(direct.tail[-1].weight.abs().max()) > 0

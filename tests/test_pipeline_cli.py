@@ -112,3 +112,13 @@ def test_denoise_bad_input(tmp_path: Path, ckpt: Path, demo_run: Path, capsys: p
     _one_line_error(capsys, denoise_main([str(small), str(tmp_path / "o.exr"), "--model", str(ckpt),
                                           "--reference", str(demo_run / "reference.exr")]), "reference.exr")
     assert not (tmp_path / "o.exr").exists()
+
+
+def test_shipped_model_beats_noisy_input_on_demo_scene(tmp_path: Path) -> None:
+    """The default weights (model/weights/default.ckpt) on our own 32-px demo scene at 16 spp."""
+    out = tmp_path / "shipped"
+    assert main([str(DEMO), "--spp", "16", "--res", "32", "32", "--reference-spp", "512",
+                 "--out", str(out), "--quiet"]) == 0
+    quality = json.loads((out / "metrics.json").read_text())["quality"]
+    assert quality["denoised"]["psnr"] > quality["noisy"]["psnr"] + 1.0
+    assert quality["denoised"]["relmse"] < quality["noisy"]["relmse"]

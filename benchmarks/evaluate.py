@@ -1,0 +1,174 @@
+"""The quality scoreboard: every scene of ../shared/eval-scenes, noisy vs ours vs OIDN colour-only.
+
+For each scene and spp (default 16 and 128, seed 7 as in the scenes' reference.json): render with
+the box filter, denoise with our model and with OIDN (``pyoidn``, colour only, hdr) side by side,
+and compare with the stored 2048-spp ``reference.exr``: PSNR (tonemapped x/(1+x), gamma 1/2.2),
+relMSE (eps 0.01), FLIP (LDR), and denoise seconds. Our noisy PSNR is checked against the one
+recorded in reference.json (same renderer, same seed: it must match). Scenes whose reference noise
+ceiling (``reference_psnr_ceiling_db``) is below ``--ceiling-db`` are reported but flagged: at
+128 spp their reference is not much cleaner than the input, so no denoiser can be scored there.
+
+Usage: python benchmarks/evaluate.py [--model PATH] [--spp 16,128] [--scenes a,b] [--out DIR]
+Writes DIR/evaluate.json and DIR/evaluate.md (default DIR: benchmarks/results).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import platform
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from pipeline.atomic_io import write_text_atomic  # noqa: E402
+from pipeline.denoise import Denoiser  # noqa: E402
+from pipeline.exr import read_exr  # noqa: E402
+from pipeline.metrics import flip, psnr, relmse  # noqa: E402
+from pipeline.oidn import oidn_denoise  # noqa: E402
+from pipeline.render import load_scene, prepare, render_loaded  # noqa: E402
+
+EVAL_DIR = ROOT.parent / "shared" / "eval-scenes"
+SEED = 7
+
+
+def _scores(img: np.ndarray, ref: np.ndarray) -> dict[str, float]:
+    return {"psnr": psnr(img, ref), "relmse": relmse(img, ref), "flip": flip(img, ref)}
+
+
+def evaluate_scene(folder: Path, spps: list[int], denoiser: Denoiser) -> dict[str, Any]:
+    """Render ``folder/scene.xml`` at each spp; score noisy, ours and OIDN against its reference."""
+    info = json.loads((folder / "reference.json").read_text())
+    ref = read_exr(folder / "reference.exr").rgb
+    h, w = ref.shape[:2]
+    scene = load_scene(prepare(folder / "scene.xml", (w, h)))
+    row: dict[str, Any] = {"ceiling_db": info["reference_psnr_ceiling_db"], "resolution": [w, h]}
+    for spp in spps:
+        noisy = render_loaded(scene, spp, SEED)
+        ours = denoiser.denoise_array(noisy.rgb)
+        oidn, oidn_s = oidn_denoise(noisy.rgb)
+        entry = {"render_s": noisy.seconds, "ours_s": ours.seconds, "oidn_s": oidn_s,
+                 "noisy": _scores(noisy.rgb, ref), "ours": _scores(ours.image, ref),
+                 "oidn": _scores(oidn, ref)}
+        recorded = info.get(f"spp{spp}", {}).get("noisy_psnr")
+        if recorded is not None:
+            entry["noisy_psnr_recorded"] = recorded
+        row[str(spp)] = entry
+    return row
+
+
+def _mean(values: list[float]) -> float:
+    finite = [v for v in values if math.isfinite(v)]
+    return float(np.mean(finite)) if finite else float("nan")
+
+
+def summarize(rows: dict[str, Any], spps: list[int], ceiling_db: float) -> dict[str, Any]:
+    """Means over the scenes whose reference ceiling is >= ``ceiling_db`` (and over all)."""
+    out: dict[str, Any] = {}
+    for subset, names in (("scored", [n for n, r in rows.items() if r["ceiling_db"] >= ceiling_db]),
+                          ("all", list(rows))):
+        out[subset] = {"scenes": len(names)}
+        for spp in spps:
+            key = str(spp)
+            out[subset][key] = {
+                f"{who}_{metric}": _mean([rows[n][key][who][metric] for n in names])
+                for who in ("noisy", "ours", "oidn") for metric in ("psnr", "relmse", "flip")}
+            out[subset][key]["ours_s"] = _mean([rows[n][key]["ours_s"] for n in names])
+            out[subset][key]["oidn_s"] = _mean([rows[n][key]["oidn_s"] for n in names])
+    return out
+
+
+def markdown(rows: dict[str, Any], summary: dict[str, Any], spps: list[int], ceiling_db: float,
+             model: str) -> str:
+    """The scoreboard as a markdown table (one row per scene and spp, then the means)."""
+    lines = [f"Model `{model}`; PSNR dB (tonemapped) / relMSE / FLIP against the 2048-spp "
+             f"references; * = reference ceiling below {ceiling_db:g} dB (not in the scored mean).", "",
+             "| scene | spp | noisy PSNR | ours PSNR | OIDN PSNR | noisy relMSE | ours relMSE | "
+             "OIDN relMSE | ours FLIP | OIDN FLIP | ours s | OIDN s |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for name, row in rows.items():
+        flag = "*" if row["ceiling_db"] < ceiling_db else ""
+        for spp in spps:
+            e = row[str(spp)]
+            lines.append(
+                f"| {name}{flag} | {spp} | {e['noisy']['psnr']:.2f} | {e['ours']['psnr']:.2f} | "
+                f"{e['oidn']['psnr']:.2f} | {e['noisy']['relmse']:.4f} | {e['ours']['relmse']:.4f} | "
+                f"{e['oidn']['relmse']:.4f} | {e['ours']['flip']:.3f} | {e['oidn']['flip']:.3f} | "
+                f"{e['ours_s']:.2f} | {e['oidn_s']:.2f} |")
+    for subset in ("scored", "all"):
+        s = summary[subset]
+        for spp in spps:
+            m = s[str(spp)]
+            lines.append(
+                f"| **mean, {subset} ({s['scenes']})** | {spp} | {m['noisy_psnr']:.2f} | "
+                f"{m['ours_psnr']:.2f} | {m['oidn_psnr']:.2f} | {m['noisy_relmse']:.4f} | "
+                f"{m['ours_relmse']:.4f} | {m['oidn_relmse']:.4f} | {m['ours_flip']:.3f} | "
+                f"{m['oidn_flip']:.3f} | {m['ours_s']:.2f} | {m['oidn_s']:.2f} |")
+    return "\n".join(lines) + "\n"
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--model", help="checkpoint (default: the shipped weights)")
+    p.add_argument("--spp", default="16,128")
+    p.add_argument("--scenes", help="comma-separated subset of scene folder names")
+    p.add_argument("--ceiling-db", type=float, default=40.0,
+                   help="flag scenes whose reference ceiling is below this (default 40 dB)")
+    p.add_argument("--eval-dir", default=str(EVAL_DIR))
+    p.add_argument("--out", default=str(ROOT / "benchmarks" / "results"))
+    args = p.parse_args()
+    eval_dir = Path(args.eval_dir)
+    if not eval_dir.is_dir():
+        print(f"evaluate: {eval_dir}: evaluation scenes not found", file=sys.stderr)
+        return 1
+    spps = [int(s) for s in args.spp.split(",")]
+    names = sorted(d.name for d in eval_dir.iterdir() if (d / "reference.exr").exists())
+    if args.scenes:
+        wanted = args.scenes.split(",")
+        missing = sorted(set(wanted) - set(names))
+        if missing:
+            print(f"evaluate: unknown scene(s): {', '.join(missing)}", file=sys.stderr)
+            return 1
+        names = [n for n in names if n in wanted]
+    denoiser = Denoiser(args.model)
+    start = time.perf_counter()
+    rows: dict[str, Any] = {}
+    for name in tqdm(names, desc="eval scenes", unit="scene"):
+        rows[name] = evaluate_scene(eval_dir / name, spps, denoiser)
+    summary = summarize(rows, spps, args.ceiling_db)
+    result = {"model": {"path": str(denoiser.path), "sha256": denoiser.sha256,
+                        "config": denoiser.config.to_dict(), "step": denoiser.meta.get("step")},
+              "spp": spps, "seed": SEED, "ceiling_db": args.ceiling_db, "summary": summary,
+              "scenes": rows, "wall_s": time.perf_counter() - start,
+              "machine": {"cpu": platform.processor() or platform.machine(), "cores": _cores()}}
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    write_text_atomic(out / "evaluate.json", json.dumps(result, indent=1, default=_json_default) + "\n")
+    table = markdown(rows, summary, spps, args.ceiling_db, denoiser.name)
+    write_text_atomic(out / "evaluate.md", table)
+    print(table)
+    print(f"wrote {out / 'evaluate.json'} and {out / 'evaluate.md'}")
+    return 0
+
+
+def _cores() -> int:
+    import os
+
+    return len(os.sched_getaffinity(0))
+
+
+def _json_default(value: Any) -> Any:
+    if isinstance(value, (np.floating, np.integer)):
+        return value.item()
+    raise TypeError(f"not JSON serialisable: {type(value).__name__}")
+
+
+if __name__ == "__main__":
+    sys.exit(main())

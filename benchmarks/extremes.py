@@ -1,0 +1,170 @@
+"""The figures behind the robustness tests (tests/test_extremes.py): energy preservation, PSNR of a
+converged 4096-spp image before and after denoising, and peak memory denoising an 8K image.
+
+    .venv/bin/python benchmarks/extremes.py [--model PATH] [--quick] [--size 7680x4320]
+        [--max-memory-mb 1024]
+
+* energy: scenes rendered at 16 spp (the bundled demo; without --quick also three eval scenes from
+  ../shared/eval-scenes): mean radiance of the denoised image / that of the noisy input (an unbiased
+  estimate), at the render's own exposure and rescaled to mean 1e-4 and 1e3 (then scaled back);
+  plus the largest output for an all-zero image and the interior error for constant images.
+* converged: the demo at 4096 spp against a 16384-spp reference: tonemapped PSNR noisy vs denoised.
+* memory: a child process denoises a WxH HDR image (default 7680x4320, --quick 960x540) under
+  ``--max-memory-mb``; its peak RSS (ru_maxrss) against its RSS before the call (model loaded,
+  image in RAM, one small warm-up image denoised).
+
+Prints a table and writes benchmarks/results/extremes.json (the entry of the other mode is kept).
+The model defaults to the shipped weights (model/weights/default.ckpt).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from pipeline.denoise import DEFAULT_WEIGHTS, Denoiser, file_sha256  # noqa: E402
+from pipeline.metrics import psnr  # noqa: E402
+from pipeline.render import render  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS = ROOT / "benchmarks" / "results" / "extremes.json"
+DEMO = ROOT / "scenes" / "examples" / "demo.xml"
+EVAL = ROOT.parent / "shared" / "eval-scenes"
+EVAL_SCENES = ("cbox_spectral", "matpreview_plastic", "bitterli_veach_mis")
+EXPOSURES = (1e-4, 1e3)
+CONSTANTS = (0.01, 0.18, 1.0, 100.0)
+
+
+def _scene(name: str, res: tuple[int, int]) -> tuple[Path, dict[str, str], tuple[int, int] | None]:
+    if name == "demo":
+        return DEMO, {}, res
+    return EVAL / name / "scene.xml", {"resx": str(res[0]), "resy": str(res[1])}, None
+
+
+def energy(den: Denoiser, names: list[str], res: tuple[int, int]) -> dict[str, Any]:
+    """Mean radiance ratios denoised / noisy at 16 spp, own exposure and rescaled."""
+    rows = {}
+    for name in names:
+        path, params, resolution = _scene(name, res)
+        noisy = render(path, 16, seed=3, resolution=resolution, params=params).rgb
+        mean = float(noisy.mean())
+        row = {"noisy_mean": mean, "ratio": float(den.denoise_array(noisy).image.mean()) / mean}
+        for target in EXPOSURES:
+            scale = target / mean
+            out = den.denoise_array(noisy * scale).image / scale
+            row[f"ratio_at_mean_{target:g}"] = float(out.mean()) / mean
+        rows[name] = row
+    zero = den.denoise_array(np.zeros((64, 64, 3), np.float32)).image
+    constants = {}
+    r = den.margin
+    for value in CONSTANTS:
+        interior = den.denoise_array(np.full((64, 64, 3), value, np.float32)).image[r:-r, r:-r]
+        constants[f"{value:g}"] = {"mean_rel_error": float(interior.mean() / value - 1),
+                                   "std_rel": float(interior.std() / value)}
+    worst = max(abs(row[k] - 1) for row in rows.values() for k in row if k.startswith("ratio"))
+    return {"scenes": rows, "zero_max": float(zero.max()), "constants": constants,
+            "worst_ratio_error": worst}
+
+
+def converged(den: Denoiser, size: int) -> dict[str, Any]:
+    """PSNR against a 16384-spp reference of the demo at 4096 spp, noisy vs denoised."""
+    noisy = render(DEMO, 4096, seed=1, resolution=(size, size)).rgb
+    reference = render(DEMO, 16384, seed=2, resolution=(size, size)).rgb
+    out = den.denoise_array(noisy).image
+    return {"size": size, "psnr_noisy_db": psnr(noisy, reference), "psnr_denoised_db": psnr(out, reference),
+            "mean_ratio": float(out.mean() / noisy.mean())}
+
+
+def _rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: KiB
+
+
+def memory_child(model: str, width: int, height: int, max_memory_mb: float) -> dict[str, Any]:
+    """Runs in a fresh process: denoise one WxH image, report RSS figures (MiB) and time."""
+    den = Denoiser(model, max_memory_mb=max_memory_mb)
+    rng = np.random.default_rng(0)
+    image = (rng.random((height, width, 3), dtype=np.float32) * 4.0).astype(np.float32, copy=False)
+    den.denoise_array(image[:64, :64])  # warm-up: one-time allocations are not the image's
+    base = _rss_mb()
+    start = time.perf_counter()
+    result = den.denoise_array(image)
+    seconds = time.perf_counter() - start
+    peak = _rss_mb()
+    assert np.isfinite(result.image).all()
+    return {"width": width, "height": height, "max_memory_mb": max_memory_mb, "core": den.core_size(),
+            "tiles": result.tiles, "image_mb": image.nbytes / 2**20, "base_rss_mb": base,
+            "peak_rss_mb": peak, "over_base_mb": peak - base, "seconds": seconds,
+            "megapixels_per_s": width * height / 1e6 / seconds}
+
+
+def memory(model: str, width: int, height: int, max_memory_mb: float) -> dict[str, Any]:
+    code = ("import json, sys; sys.path.insert(0, sys.argv[1]); from benchmarks.extremes import memory_child; "
+            "print(json.dumps(memory_child(sys.argv[2], int(sys.argv[3]), int(sys.argv[4]), float(sys.argv[5]))))")
+    proc = subprocess.run([sys.executable, "-c", code, str(ROOT), model, str(width), str(height),
+                           str(max_memory_mb)], capture_output=True, text=True, cwd=ROOT)
+    if proc.returncode != 0:
+        raise SystemExit(f"extremes: memory child failed: {proc.stderr.strip().splitlines()[-1:]}")
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def _table(result: dict[str, Any]) -> list[str]:
+    e, c, m = result["energy"], result["converged"], result["memory"]
+    lines = [f"model {result['model']} ({result['mode']}, {result['machine']})", "",
+             f"{'energy (denoised/noisy mean)':34}{'own':>8}" + "".join(f"{f'@{t:g}':>9}" for t in EXPOSURES)]
+    for name, row in e["scenes"].items():
+        lines.append(f"{name:34}{row['ratio']:>8.4f}" + "".join(f"{row[f'ratio_at_mean_{t:g}']:>9.4f}"
+                                                              for t in EXPOSURES))
+    lines.append(f"worst |ratio - 1|: {e['worst_ratio_error']:.4f}; all-zero image -> max {e['zero_max']:.3g}")
+    lines.append("constant images (interior): " + ", ".join(
+        f"{v}: mean {row['mean_rel_error']:+.4f} std {row['std_rel']:.4f}" for v, row in e["constants"].items()))
+    lines += ["", f"demo {c['size']}px at 4096 spp vs 16384-spp reference: PSNR noisy {c['psnr_noisy_db']:.2f} dB,"
+              f" denoised {c['psnr_denoised_db']:.2f} dB ({c['psnr_denoised_db'] - c['psnr_noisy_db']:+.2f})", "",
+              f"memory {m['width']}x{m['height']} ({m['image_mb']:.0f} MiB image) under --max-memory-mb "
+              f"{m['max_memory_mb']:g}: peak RSS {m['peak_rss_mb']:.0f} MiB, {m['over_base_mb']:.0f} MiB over the "
+              f"process before the call; {m['tiles']} tiles of core {m['core']}, {m['seconds']:.1f} s "
+              f"({m['megapixels_per_s']:.3f} Mpx/s)"]
+    return lines
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--model", help="checkpoint (default: the shipped weights)")
+    p.add_argument("--quick", action="store_true", help="demo only, small images, 960x540 memory run")
+    p.add_argument("--size", help="memory run image WxH (default 7680x4320, --quick 960x540)")
+    p.add_argument("--max-memory-mb", type=float, default=1024.0)
+    args = p.parse_args()
+    model = args.model or str(DEFAULT_WEIGHTS)
+    if not Path(model).exists():
+        raise SystemExit(f"extremes: {model}: no shipped weights yet; pass --model PATH")
+    width, height = (int(v) for v in (args.size or ("960x540" if args.quick else "7680x4320")).split("x"))
+    den = Denoiser(model, max_memory_mb=args.max_memory_mb)
+    mode = "quick" if args.quick else "full"
+    names = ["demo"] + ([] if args.quick else [n for n in EVAL_SCENES if (EVAL / n).is_dir()])
+    result = {
+        "mode": mode, "model": Path(model).name, "model_sha256": file_sha256(Path(model)),
+        "machine": f"{platform.machine()}, {os.cpu_count()} cores (load {os.getloadavg()[0]:.1f} at start)",
+        "energy": energy(den, names, (48, 48) if args.quick else (128, 96)),
+        "converged": converged(den, 24 if args.quick else 64),
+        "memory": memory(model, width, height, args.max_memory_mb),
+    }
+    print("\n".join(_table(result)))
+    previous = json.loads(RESULTS.read_text()) if RESULTS.exists() else {}
+    previous[mode] = result
+    RESULTS.parent.mkdir(parents=True, exist_ok=True)
+    RESULTS.write_text(json.dumps(previous, indent=1) + "\n")
+    print(f"\nwrote {RESULTS.relative_to(ROOT)}")
+
+
+if __name__ == "__main__":
+    main()

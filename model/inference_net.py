@@ -1,0 +1,162 @@
+"""An inference-only copy of a trained :class:`model.network.Denoiser`: same function, less work.
+
+What changes against the training module (eval mode), and why it is exact up to float32 rounding:
+
+* **BatchNorm folded into the conv before it.** Eval-mode BN is an affine map per channel,
+  ``y = s*x + t`` with ``s = gamma/sqrt(var+eps)``, ``t = beta - s*mean``. When it directly follows
+  a conv (the head's conv7x7 -> BN, every bottleneck's conv1x1 -> BN) the conv becomes
+  ``W' = s*W``, ``b' = s*b + t``.
+* **BN-ReLU before a 1x1 conv as one clamp.** A BN that follows a ReLU (each bottleneck's first
+  BN; in the dense block it acts on the concatenation of earlier outputs with statistics of its
+  own) cannot be folded backwards through the ReLU. But ``relu(s*x + t) = s*clamp(x, lo, hi) + c``
+  per channel, and a 1x1 conv has no padding, so its scale moves into the conv's weights and
+  ``c`` into its bias: one clamp pass instead of a BN pass and a ReLU pass. The tail's BN-ReLU
+  precedes a padded 3x3 conv (the constant would be wrong at the border) and stays an affine map
+  with an in-place ReLU.
+* **No concatenation.** The dense block writes every layer's k new channels into slices of one
+  preallocated buffer instead of ``torch.cat``-ing an ever-growing tensor (O(L) instead of O(L^2)
+  memory traffic).
+* **channels_last** (NHWC) activations and weights, the layout oneDNN convolves without reordering.
+
+Input and output are those of the original model: Nx3xHxW (Nx9xHxW with aux) transfer-space image
+-> Nx3xHxW transfer-space RGB. ``tests/test_infer_speedups.py`` bounds the difference.
+"""
+from __future__ import annotations
+
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+from model.config import ModelConfig
+from model.network import Denoiser, network_input
+
+
+def bn_affine(bn: nn.BatchNorm2d) -> tuple[torch.Tensor, torch.Tensor]:
+    """Eval-mode BN as per-channel (scale, shift), computed in float64, returned float32."""
+    var = bn.running_var.double()
+    scale = (bn.weight.double() if bn.affine else torch.ones_like(var)) / torch.sqrt(var + bn.eps)
+    bias = bn.bias.double() if bn.affine else torch.zeros_like(var)
+    shift = bias - scale * bn.running_mean.double()
+    return scale.float(), shift.float()
+
+
+def fold_conv_bn(conv: nn.Conv2d, bn: nn.BatchNorm2d) -> tuple[torch.Tensor, torch.Tensor]:
+    """(weight, bias) of ``conv`` followed by eval-mode ``bn`` as a single conv (float64 maths)."""
+    scale, shift = (v.double() for v in bn_affine(bn))
+    weight = conv.weight.double() * scale.view(-1, 1, 1, 1)
+    bias = shift if conv.bias is None else scale * conv.bias.double() + shift
+    return weight.float(), bias.float()
+
+
+class _Conv(nn.Module):
+    """A folded conv: fixed weight, optional bias, 'same' padding, optional ReLU after it."""
+
+    def __init__(self, weight: torch.Tensor, bias: torch.Tensor | None, relu: bool) -> None:
+        super().__init__()
+        self.register_buffer("weight", weight.contiguous(memory_format=torch.channels_last))
+        self.register_buffer("bias", bias)
+        self.padding = weight.shape[-1] // 2
+        self.relu = relu
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        y = F.conv2d(x, self.weight, self.bias, padding=self.padding)
+        return y.relu_() if self.relu else y
+
+
+class _AffineReLU(nn.Module):
+    """relu(scale*x + shift) per channel: a BN that follows a ReLU, kept as one pass + in-place ReLU."""
+
+    def __init__(self, scale: torch.Tensor, shift: torch.Tensor) -> None:
+        super().__init__()
+        self.register_buffer("scale", scale.view(1, -1, 1, 1))
+        self.register_buffer("shift", shift.view(1, -1, 1, 1))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.addcmul(self.shift, x, self.scale).relu_()
+
+
+DEAD_SCALE = 1e-12  # |s| below this: the channel counts as constant (s*x is lost in rounding)
+
+
+def relu_affine_as_clamp(scale: torch.Tensor, shift: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    """Rewrite ``relu(s*x + t)`` per channel as ``s*clamp(x, lo, hi) + c`` (exact, float64).
+
+    s > 0: lo = -t/s, hi = +inf, c = t. s < 0: lo = -inf, hi = -t/s, c = t. s = 0 (or
+    |s| < DEAD_SCALE, where -t/s could overflow): s := 0, no clamp, c = relu(t). Returns float32
+    (s, lo, hi, c) shaped C, 1xCx1x1, 1xCx1x1, 1xCx1x1.
+    """
+    s, t = scale.double(), shift.double()
+    s = torch.where(s.abs() < DEAD_SCALE, torch.zeros_like(s), s)
+    safe = torch.where(s == 0, torch.ones_like(s), s)
+    inf = torch.full_like(s, float("inf"))
+    lo = torch.where(s > 0, -t / safe, -inf)
+    hi = torch.where(s < 0, -t / safe, inf)
+    c = torch.where(s == 0, t.clamp(min=0.0), t)
+    return (s.float(), *(v.float().view(1, -1, 1, 1) for v in (lo, hi, c)))
+
+
+class _ClampConv1x1(nn.Module):
+    """A bottleneck's BN-ReLU-Conv1x1-BN-ReLU in two passes: a clamp, then a conv with bias + ReLU.
+
+    ``relu(s*x + t) = s*clamp(x, lo, hi) + c`` (:func:`relu_affine_as_clamp`), and a 1x1 conv has
+    no padding, so ``W @ (s*clamp(x) + c) = (W*s) @ clamp(x) + W @ c`` holds at every pixel.
+    """
+
+    def __init__(self, bn1: nn.BatchNorm2d, conv: nn.Conv2d, bn2: nn.BatchNorm2d) -> None:
+        super().__init__()
+        scale, lo, hi, const = relu_affine_as_clamp(*bn_affine(bn1))
+        weight, bias = fold_conv_bn(conv, bn2)
+        w = weight.double()[:, :, 0, 0]
+        bias = bias.double() + w @ const.double().view(-1)
+        self.register_buffer("lo", lo)
+        self.register_buffer("hi", hi)
+        self.conv = _Conv((w * scale.double()).float()[:, :, None, None], bias.float(), relu=True)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.conv(torch.clamp(x, self.lo, self.hi))
+
+
+class InferenceNet(nn.Module):
+    """The folded, concatenation-free, channels_last equivalent of a Denoiser in eval mode."""
+
+    def __init__(self, model: Denoiser) -> None:
+        super().__init__()
+        self.config: ModelConfig = model.config
+        self.width = model.body.out_channels
+        with torch.no_grad():
+            conv0, bn0, _ = model.head
+            self.head = _Conv(*fold_conv_bn(conv0, bn0), relu=True)
+            layers = [layer.body for layer in model.body.layers]
+            self.conv1 = nn.ModuleList(_ClampConv1x1(b[0], b[2], b[3]) for b in layers)
+            self.conv3 = nn.ModuleList(_Conv(b[5].weight.detach().clone(), None, relu=False) for b in layers)
+            tail_bn, _, tail_conv = model.tail
+            self.tail_pre = _AffineReLU(*bn_affine(tail_bn))
+            self.tail = _Conv(tail_conv.weight.detach().clone(), None, relu=False)
+        self.eval()
+
+    def _dense(self, x: torch.Tensor) -> torch.Tensor:
+        c0, k = self.config.init_features, self.config.growth
+        n, _, h, w = x.shape
+        buf = torch.empty(n, self.width, h, w, dtype=x.dtype, memory_format=torch.channels_last)
+        buf[:, :c0] = x
+        for i, (conv1, conv3) in enumerate(zip(self.conv1, self.conv3)):
+            cin = c0 + i * k
+            buf[:, cin:cin + k] = conv3(conv1(buf[:, :cin]))
+        return buf
+
+    def _plain(self, x: torch.Tensor) -> torch.Tensor:
+        for conv1, conv3 in zip(self.conv1, self.conv3):
+            x = conv3(conv1(x))
+        return x
+
+    def forward(self, image: torch.Tensor) -> torch.Tensor:
+        x = network_input(image).contiguous(memory_format=torch.channels_last)
+        x = self.head(x)
+        x = self._dense(x) if self.config.arch == "densenet" else self._plain(x)
+        out = self.tail(self.tail_pre(x))
+        return out + image[:, :3] if self.config.output == "residual" else out
+
+
+def prepare_for_inference(model: Denoiser) -> InferenceNet:
+    """A folded copy of ``model`` for inference (the original is left unchanged)."""
+    return InferenceNet(model)

@@ -1,0 +1,196 @@
+"""DDP training: 2 ranks match 1 process with micro_batch = batch/2; a lost rank; resume; config rules."""
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from model.checkpoint import read_checkpoint
+from model.cli import main
+from model.distributed import RankInfo, ShardSource, ddp_config, rank_from_env
+from model.errors import ConfigError
+from model.patches import TrainingPair
+from model.synthetic import write_synthetic_dataset
+from model.train import BatchSource
+from model.train_config import TrainConfig
+
+TINY = {"model": {"layers": 2, "growth": 4, "init_features": 8}, "batch": 8, "val_every": 0, "progress": False,
+        "threads": 1}
+# Measured (2-core x86, torch 2.13): weights and Adam moments bit-identical to the 1-process run
+# (halving and a 2-term sum are exact either way), BatchNorm running statistics within 2.4e-7
+# (merged in float64 vs updated chunk by chunk in float32). The tolerances leave room for other
+# kernels and for more ranks, where the all-reduce sums in another order than the accumulation.
+RTOL, ATOL = 1e-4, 1e-5
+TIMEOUT_S = 900  # seconds a launch may take: ~20 s on an idle 2-core machine, minutes on a busy one
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return write_synthetic_dataset(tmp_path_factory.mktemp("ds"), scenes=3, res=(32, 32), spp=(4, 16),
+                                   val_scenes=(2,))
+
+
+def _config(tmp_path: Path, **fields: object) -> str:
+    path = tmp_path / "config.json"
+    path.write_text(json.dumps({**TINY, **fields}))
+    return str(path)
+
+
+def _stop(proc: subprocess.Popen) -> None:
+    """Stop a ``train --nproc`` launcher and any rank it left (ranks run in sessions of their own)."""
+    import psutil
+
+    if proc.poll() is not None:
+        return
+    try:
+        ranks = psutil.Process(proc.pid).children(recursive=True)
+    except psutil.NoSuchProcess:
+        ranks = []
+    proc.terminate()
+    try:
+        proc.wait(30)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+    for rank in ranks:
+        with contextlib.suppress(psutil.NoSuchProcess):
+            rank.kill()
+
+
+def _start(*args: str) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "model.cli", *args], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+
+
+def _train(*args: str) -> subprocess.CompletedProcess:
+    """``train ARGS`` in a fresh process (as a user runs it), stdout/stderr captured."""
+    proc = _start(*args)
+    try:
+        out, err = proc.communicate(timeout=TIMEOUT_S)
+    finally:
+        _stop(proc)
+    return subprocess.CompletedProcess(proc.args, proc.returncode, out, err)
+
+
+def _assert_same_state(a: Path, b: Path) -> None:
+    ca, cb = read_checkpoint(a), read_checkpoint(b)
+    assert ca.header["step"] == cb.header["step"]
+    names = [k for k in ca.tensors if k.startswith(("model/", "optim/"))]
+    assert names and sorted(names) == sorted(k for k in cb.tensors if k.startswith(("model/", "optim/")))
+    for name in names:  # weights, BatchNorm running statistics, Adam moments
+        torch.testing.assert_close(cb.tensors[name], ca.tensors[name], rtol=RTOL, atol=ATOL, msg=name)
+
+
+def _losses(run: Path) -> list[float]:
+    return [json.loads(line)["loss"] for line in (run / "log.jsonl").read_text().splitlines()]
+
+
+def test_ddp_config_records_ghost_batch_norm() -> None:
+    config = TrainConfig(data="d", out="o", batch=8)
+    assert ddp_config(config, 2, resume=False).micro_batch == 4
+    assert ddp_config(dataclasses.replace(config, micro_batch=2), 2, resume=False).micro_batch == 2
+    with pytest.raises(ConfigError, match="batch 8 does not split evenly over 3 ranks"):
+        ddp_config(config, 3, resume=False)
+    with pytest.raises(ConfigError, match="resume it in one process"):
+        ddp_config(config, 2, resume=True)
+    with pytest.raises(ConfigError, match="micro_batch 4 does not divide the per-rank batch 2"):
+        ddp_config(dataclasses.replace(config, micro_batch=4), 4, resume=True)
+    with pytest.raises(ConfigError, match="--compile"):
+        ddp_config(dataclasses.replace(config, compile=True), 2, resume=False)
+
+
+def test_rank_from_env() -> None:
+    assert rank_from_env({}) is None
+    env = {"RANK": "1", "WORLD_SIZE": "2", "LOCAL_RANK": "1", "LOCAL_WORLD_SIZE": "2"}
+    assert rank_from_env(env) == RankInfo(1, 2, 1, 2) and not rank_from_env(env).primary
+    with pytest.raises(ConfigError, match="bad torchrun environment"):
+        rank_from_env({"RANK": "x", "WORLD_SIZE": "2"})
+
+
+def test_shards_cut_the_single_process_batch(rng: np.random.Generator) -> None:
+    pairs = [TrainingPair(rng.random((32, 32, 3), dtype=np.float32), rng.random((32, 32, 3), dtype=np.float32),
+                         0, 4)]
+    config = TrainConfig(data="d", out="o", batch=8, prefetch=False)
+    whole = BatchSource(pairs, config).get(5)
+    halves = [ShardSource(pairs, config, slice(r * 4, r * 4 + 4)).get(5) for r in (0, 1)]
+    for i in (0, 1):  # noisy, ref
+        assert torch.equal(torch.cat([h[i] for h in halves]), whole[i])
+
+
+@pytest.mark.slow
+def test_two_ranks_match_one_process_with_micro_batch(dataset: Path, tmp_path: Path) -> None:
+    cfg = _config(tmp_path, ckpt_every=2, log_every=1)
+    one, two = tmp_path / "one", tmp_path / "two"
+    assert main(["--data", str(dataset), "--out", str(one), "--config", cfg, "--steps", "4",
+                 "--micro-batch", "4"]) == 0
+    done = _train("--data", str(dataset), "--out", str(two), "--config", cfg, "--steps", "4", "--nproc", "2")
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.count("trained to step 4") == 1  # rank 0 alone reports
+    _assert_same_state(one / "last.ckpt", two / "last.ckpt")
+    assert read_checkpoint(two / "last.ckpt").header["train_config"]["micro_batch"] == 4
+    assert len(_losses(two)) == 4  # rank 0 alone logs
+    np.testing.assert_allclose(_losses(two), _losses(one), rtol=1e-5)
+    # the DDP checkpoint resumes in one process exactly like the single-process run
+    assert main(["--out", str(two), "--resume", "--steps", "6", "--no-progress"]) == 0
+    assert main(["--out", str(one), "--resume", "--steps", "6", "--no-progress"]) == 0
+    _assert_same_state(one / "last.ckpt", two / "last.ckpt")
+
+
+def _rank_pid(launcher: int, rank: int, deadline: float) -> int:
+    import psutil
+
+    while time.time() < deadline:
+        for child in psutil.Process(launcher).children(recursive=True):
+            try:
+                if child.environ().get("RANK") == str(rank):
+                    return child.pid
+            except (psutil.NoSuchProcess, psutil.AccessDenied):
+                continue
+        time.sleep(0.2)
+    raise AssertionError(f"rank {rank} never started")
+
+
+@pytest.mark.slow
+def test_lost_rank_stops_the_job_and_resume_continues(dataset: Path, tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    cfg = _config(tmp_path, ckpt_every=2, log_every=2, micro_batch=4)
+    proc = _start("--data", str(dataset), "--out", str(run), "--config", cfg, "--steps", "100000", "--nproc", "2")
+    try:
+        deadline = time.time() + TIMEOUT_S
+        victim = _rank_pid(proc.pid, 1, deadline)
+        while time.time() < deadline and not (run / "last.ckpt").exists():
+            time.sleep(0.1)
+        assert (run / "last.ckpt").exists(), "no checkpoint was written"
+        os.kill(victim, signal.SIGKILL)
+        _, err = proc.communicate(timeout=TIMEOUT_S)
+    finally:
+        _stop(proc)
+    assert proc.returncode == 1
+    last = err.strip().splitlines()[-1]
+    assert last.startswith("train: error: rank 1 (pid ") and "was killed by SIGKILL; all 2 ranks were stopped" in last
+    assert f"the last complete checkpoint is {run / 'last.ckpt'}" in last
+    step = read_checkpoint(run / "last.ckpt").header["step"]  # intact, complete
+    assert step >= 2 and step % 2 == 0 and f"(step {step})" in last
+    done = _train("--out", str(run), "--resume", "--steps", str(step + 2), "--nproc", "2", "--no-progress")
+    assert done.returncode == 0, done.stderr
+    assert read_checkpoint(run / "last.ckpt").header["step"] == step + 2
+    assert [r["step"] for r in map(json.loads, (run / "log.jsonl").read_text().splitlines())][-1] == step + 2
+
+
+def test_cli_refuses_bad_ddp_settings(dataset: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    cfg = _config(tmp_path, batch=6)
+    assert main(["--data", str(dataset), "--out", str(tmp_path / "r"), "--config", cfg, "--nproc", "4"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["train: error: batch 6 does not split evenly over 4 ranks"]
+    assert main(["--data", str(dataset), "--out", str(tmp_path / "r"), "--config", cfg, "--nproc", "0"]) == 1
+    assert "--nproc must be >= 1" in capsys.readouterr().err

@@ -1,0 +1,95 @@
+"""The inference-only network (model.inference_net) equals the training module in eval mode.
+
+Tolerances: transfer-space outputs of the folded network within 2e-5 absolute of the eager
+module (float32 rounding of the folded weights, a different summation order); the radiance of the
+whole chain (Denoiser) within rtol 2e-4 (the log transfer's inverse multiplies an absolute
+transfer-space error by about 11 x radiance).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from model.checkpoint import save_checkpoint
+from model.config import ModelConfig
+from model.inference_net import bn_affine, fold_conv_bn, prepare_for_inference, relu_affine_as_clamp
+from model.network import build_model
+from pipeline.denoise import Denoiser
+
+NET_ATOL = 2e-5
+CHAIN_RTOL = 2e-4
+
+
+def _trained_like(config: ModelConfig, seed: int = 0) -> torch.nn.Module:
+    """A random model with BN statistics and affine parameters of both signs, as after training."""
+    torch.manual_seed(seed)
+    model = build_model(config)
+    with torch.no_grad():
+        for m in model.modules():
+            if isinstance(m, torch.nn.BatchNorm2d):
+                m.running_mean.uniform_(-0.2, 0.2)
+                m.running_var.uniform_(0.3, 2.0)
+                m.weight.uniform_(-1.5, 1.5)
+                m.weight[0] = 0.0  # a dead channel: relu(0*x + t) is a constant
+                m.bias.uniform_(-0.2, 0.2)
+        torch.nn.init.normal_(model.tail[-1].weight, std=0.05)  # not the identity at init
+    return model.eval()
+
+
+def test_relu_affine_as_clamp_is_exact(rng: np.random.Generator) -> None:
+    scale = torch.tensor([2.0, -0.5, 0.0, 0.0, 1e-3, 1e-45], dtype=torch.float64)
+    shift = torch.tensor([0.3, 0.2, 0.7, -0.4, -0.1, 0.5], dtype=torch.float64)
+    s, lo, hi, const = relu_affine_as_clamp(scale, shift)
+    assert s[-1] == 0 and torch.isfinite(const).all()  # a near-zero scale: a constant channel
+    x = torch.from_numpy(rng.normal(0, 200, (1, 6, 7, 7)))
+    want = torch.relu(scale.view(1, -1, 1, 1) * x + shift.view(1, -1, 1, 1))
+    got = s.double().view(1, -1, 1, 1) * torch.clamp(x, lo.double(), hi.double()) + const.double()
+    torch.testing.assert_close(got, want, rtol=1e-6, atol=1e-6)
+
+
+def test_fold_conv_bn_equals_conv_then_bn() -> None:
+    model = _trained_like(ModelConfig(layers=2, growth=4, init_features=8))
+    conv, bn, _ = model.head
+    x = torch.rand(1, 9, 11, 13)
+    weight, bias = fold_conv_bn(conv, bn)
+    with torch.no_grad():
+        torch.testing.assert_close(torch.nn.functional.conv2d(x, weight, bias, padding=3), bn(conv(x)),
+                                   rtol=1e-5, atol=1e-5)
+    scale, shift = bn_affine(bn)
+    with torch.no_grad():
+        y = torch.rand(1, 8, 5, 5)
+        torch.testing.assert_close(scale.view(1, -1, 1, 1) * y + shift.view(1, -1, 1, 1), bn(y))
+
+
+@pytest.mark.parametrize("config", [
+    ModelConfig(layers=4, growth=4, init_features=8),
+    ModelConfig(layers=3, growth=6, init_features=8, output="direct", transfer="pu"),
+    ModelConfig(layers=3, growth=4, init_features=8, arch="plaincnn"),
+    ModelConfig(layers=2, growth=4, init_features=8, aux_inputs=True),
+], ids=["densenet", "direct", "plaincnn", "aux"])
+def test_inference_net_equals_eager_model(config: ModelConfig) -> None:
+    model = _trained_like(config)
+    before = {k: v.clone() for k, v in model.state_dict().items()}
+    net = prepare_for_inference(model)
+    torch.manual_seed(1)
+    for h, w in ((1, 1), (17, 29), (32, 24)):
+        x = torch.rand(1, config.image_channels, h, w) * 0.4
+        with torch.inference_mode():
+            want, got = model(x), net(x)
+        assert got.shape == want.shape
+        assert float((got - want).abs().max()) < NET_ATOL
+    assert all(torch.equal(before[k], v) for k, v in model.state_dict().items())  # original untouched
+
+
+def test_denoiser_optimized_equals_plain(tmp_path: Path, rng: np.random.Generator) -> None:
+    config = ModelConfig(layers=5, growth=4, init_features=8)
+    path = tmp_path / "m.ckpt"
+    save_checkpoint(path, _trained_like(config), step=0)
+    img = (rng.random((40, 36, 3)) ** 3 * 20).astype(np.float32)
+    fast = Denoiser(path, max_memory_mb=0.2).denoise_array(img)
+    plain = Denoiser(path, max_memory_mb=0.2, optimize=False).denoise_array(img)
+    assert fast.tiles > 1
+    np.testing.assert_allclose(fast.image, plain.image, rtol=CHAIN_RTOL, atol=1e-6)

@@ -1,0 +1,93 @@
+"""`tradeoff` end to end on a 32-px scene with 2 spp levels; its analysis on synthetic points."""
+from __future__ import annotations
+
+import csv
+import json
+import math
+from pathlib import Path
+
+import pytest
+
+from pipeline import denoise
+from pipeline.cli import tradeoff_main
+from pipeline.oidn import oidn_available
+from pipeline.errors import DenoiserError
+from pipeline.tradeoff import Point, TradeoffConfig, analyse, model_labels
+from tests.test_denoise import write_tiny_checkpoint
+
+DEMO = Path(__file__).resolve().parents[1] / "scenes" / "examples" / "demo.xml"
+
+
+@pytest.fixture(scope="module")
+def ckpts(tmp_path_factory: pytest.TempPathFactory) -> list[Path]:
+    root = tmp_path_factory.mktemp("ckpts")
+    (root / "other").mkdir()
+    return [write_tiny_checkpoint(root / "tiny.ckpt"),
+            write_tiny_checkpoint(root / "other" / "tiny.ckpt", seed=1)]
+
+
+def test_tradeoff_end_to_end(tmp_path: Path, ckpts: list[Path], capsys: pytest.CaptureFixture) -> None:
+    out = tmp_path / "trade"
+    oidn = ["--compare", "oidn"] if oidn_available() else []
+    assert tradeoff_main([str(DEMO), "--res", "32", "32", "--spp", "2,8", "--reference-spp", "32",
+                          "--repeat", "2", "--models", ",".join(map(str, ckpts)), *oidn,
+                          "--out", str(out)]) == 0
+    names = {"none", "tiny", "tiny-2"} | ({"oidn"} if oidn else set())
+    result = json.loads((out / "tradeoff.json").read_text())
+    assert result["resolution"] == [32, 32] and result["reference"]["spp"] == 32
+    assert {p["denoiser"] for p in result["points"]} == names and len(result["points"]) == 2 * len(names)
+    for p in result["points"]:
+        assert len(p["render_times"]) == 2 and p["render_s"] > 0
+        assert p["denoise_s"] == 0 if p["denoiser"] == "none" else p["denoise_s"] > 0
+        assert p["total_s"] == pytest.approx(p["render_s"] + p["denoise_s"])
+        for key in ("psnr", "relmse", "flip"):
+            assert p[key] is not None and math.isfinite(p[key]), key
+    for metric in ("psnr", "relmse", "flip"):
+        assert result["pareto"][metric], metric
+    assert len(result["equal_quality"]) == 3 * 2 * (len(names) - 1)
+    rows = list(csv.DictReader((out / "tradeoff.csv").open()))
+    assert len(rows) == len(result["points"]) and any(r["pareto"] == "1" for r in rows)
+    png = (out / "tradeoff.png").read_bytes()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 5000
+    assert json.loads((out / "config.json").read_text())["spp"] == [2, 8]
+    printed = capsys.readouterr().out
+    assert "equal-quality saving" in printed and "tiny-2" in printed
+
+
+def test_analyse_synthetic_points() -> None:
+    def point(name: str, spp: int, render_s: float, denoise_s: float, err: float) -> Point:
+        return Point(name, spp, render_s, denoise_s, psnr=-10 * math.log10(err), relmse=err, flip=err,
+                     render_times=[render_s], denoise_times=[denoise_s])
+
+    points = [point("none", s, 0.01 * s, 0.0, 1.0 / s) for s in (1, 4, 16, 64)]
+    points += [point("net", 1, 0.01, 0.05, 1.0 / 16), point("net", 4, 0.04, 0.05, 1.0 / 256)]
+    result = analyse(points, {"scene": "x.xml", "resolution": [8, 8]}, "relmse")
+    assert result["pareto"]["relmse"] == [["none", 1], ["none", 4], ["net", 1], ["net", 4]]
+    eq = {(r["denoiser"], r["spp"]): r for r in result["equal_quality"] if r["metric"] == "relmse"}
+    assert eq[("net", 1)]["raw_spp"] == pytest.approx(16) and not eq[("net", 1)]["extrapolated"]
+    assert eq[("net", 1)]["saving"] == pytest.approx(0.16 / 0.06)
+    assert eq[("net", 4)]["raw_spp"] == pytest.approx(256) and eq[("net", 4)]["extrapolated"]
+
+
+def test_missing_preset_weights_name_the_file(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                               capsys: pytest.CaptureFixture) -> None:
+    monkeypatch.setattr(denoise, "WEIGHTS_DIR", tmp_path)
+    with pytest.raises(DenoiserError, match=r"fast.ckpt: no weights for model preset 'fast'"):
+        model_labels(["fast"])
+    code = tradeoff_main([str(DEMO), "--models", "balanced", "--reference-spp", "4", "--out",
+                          str(tmp_path / "o"), "--quiet"])
+    err = capsys.readouterr().err.strip()
+    assert code == 1 and len(err.splitlines()) == 1 and str(tmp_path / "balanced.ckpt") in err
+
+
+def test_bad_settings(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    with pytest.raises(DenoiserError, match="distinct positive"):
+        TradeoffConfig(scene="x", out="y", spp=[2, 2], reference_spp=4).check()
+    with pytest.raises(DenoiserError, match="exactly one of --reference"):
+        TradeoffConfig(scene="x", out="y").check()
+    with pytest.raises(SystemExit) as exc:
+        tradeoff_main([str(DEMO), "--spp", "1,0", "--reference-spp", "4"])
+    assert exc.value.code == 2
+    with pytest.raises(SystemExit) as exc:
+        tradeoff_main([str(DEMO)])  # no reference
+    assert exc.value.code == 2 and "Traceback" not in capsys.readouterr().err
