@@ -8,7 +8,12 @@ recorded in reference.json (same renderer, same seed: it must match). Scenes who
 ceiling (``reference_psnr_ceiling_db``) is below ``--ceiling-db`` are reported but flagged: at
 128 spp their reference is not much cleaner than the input, so no denoiser can be scored there.
 
-Usage: python benchmarks/evaluate.py [--model PATH] [--spp 16,128] [--scenes a,b] [--out DIR]
+With ``--models fast,balanced,high`` (preset names or checkpoint paths) every model denoises the
+same renders; the first is "ours" in the per-scene table, and a second table compares the models'
+means and denoise times (seconds per megapixel) with OIDN's.
+
+Usage: python benchmarks/evaluate.py [--model PATH | --models A,B,C] [--spp 16,128] [--scenes a,b]
+       [--out DIR]
 Writes DIR/evaluate.json and DIR/evaluate.md (default DIR: benchmarks/results).
 """
 from __future__ import annotations
@@ -30,6 +35,7 @@ sys.path.insert(0, str(ROOT))
 
 from pipeline.atomic_io import write_text_atomic  # noqa: E402
 from pipeline.denoise import Denoiser  # noqa: E402
+from pipeline.errors import DenoiserError  # noqa: E402
 from pipeline.exr import read_exr  # noqa: E402
 from pipeline.metrics import flip, psnr, relmse  # noqa: E402
 from pipeline.oidn import oidn_denoise  # noqa: E402
@@ -43,8 +49,11 @@ def _scores(img: np.ndarray, ref: np.ndarray) -> dict[str, float]:
     return {"psnr": psnr(img, ref), "relmse": relmse(img, ref), "flip": flip(img, ref)}
 
 
-def evaluate_scene(folder: Path, spps: list[int], denoiser: Denoiser) -> dict[str, Any]:
-    """Render ``folder/scene.xml`` at each spp; score noisy, ours and OIDN against its reference."""
+def evaluate_scene(folder: Path, spps: list[int], denoisers: dict[str, Denoiser]) -> dict[str, Any]:
+    """Render ``folder/scene.xml`` at each spp; score noisy, each model and OIDN against its reference.
+
+    The first model's figures are also stored as ``ours``; every model's under ``models``.
+    """
     info = json.loads((folder / "reference.json").read_text())
     ref = read_exr(folder / "reference.exr").rgb
     h, w = ref.shape[:2]
@@ -52,11 +61,15 @@ def evaluate_scene(folder: Path, spps: list[int], denoiser: Denoiser) -> dict[st
     row: dict[str, Any] = {"ceiling_db": info["reference_psnr_ceiling_db"], "resolution": [w, h]}
     for spp in spps:
         noisy = render_loaded(scene, spp, SEED)
-        ours = denoiser.denoise_array(noisy.rgb)
+        models = {}
+        for name, denoiser in denoisers.items():
+            result = denoiser.denoise_array(noisy.rgb)
+            models[name] = {**_scores(result.image, ref), "s": result.seconds}
         oidn, oidn_s = oidn_denoise(noisy.rgb)
-        entry = {"render_s": noisy.seconds, "ours_s": ours.seconds, "oidn_s": oidn_s,
-                 "noisy": _scores(noisy.rgb, ref), "ours": _scores(ours.image, ref),
-                 "oidn": _scores(oidn, ref)}
+        first = models[next(iter(models))]
+        entry = {"render_s": noisy.seconds, "ours_s": first["s"], "oidn_s": oidn_s,
+                 "noisy": _scores(noisy.rgb, ref), "ours": {k: v for k, v in first.items() if k != "s"},
+                 "oidn": _scores(oidn, ref), "models": models}
         recorded = info.get(f"spp{spp}", {}).get("noisy_psnr")
         if recorded is not None:
             entry["noisy_psnr_recorded"] = recorded
@@ -70,7 +83,8 @@ def _mean(values: list[float]) -> float:
 
 
 def summarize(rows: dict[str, Any], spps: list[int], ceiling_db: float) -> dict[str, Any]:
-    """Means over the scenes whose reference ceiling is >= ``ceiling_db`` (and over all)."""
+    """Means over the scenes whose reference ceiling is >= ``ceiling_db`` (and over all), for the
+    first model (``ours_*``) and, under ``models``, for each model (seconds per megapixel too)."""
     out: dict[str, Any] = {}
     for subset, names in (("scored", [n for n, r in rows.items() if r["ceiling_db"] >= ceiling_db]),
                           ("all", list(rows))):
@@ -82,6 +96,13 @@ def summarize(rows: dict[str, Any], spps: list[int], ceiling_db: float) -> dict[
                 for who in ("noisy", "ours", "oidn") for metric in ("psnr", "relmse", "flip")}
             out[subset][key]["ours_s"] = _mean([rows[n][key]["ours_s"] for n in names])
             out[subset][key]["oidn_s"] = _mean([rows[n][key]["oidn_s"] for n in names])
+            mpix = [rows[n]["resolution"][0] * rows[n]["resolution"][1] / 1e6 for n in names]
+            out[subset][key]["oidn_s_per_mp"] = _mean([rows[n][key]["oidn_s"] / mp for n, mp in zip(names, mpix)])
+            out[subset][key]["models"] = {
+                model: {**{metric: _mean([rows[n][key]["models"][model][metric] for n in names])
+                           for metric in ("psnr", "relmse", "flip")},
+                        "s_per_mp": _mean([rows[n][key]["models"][model]["s"] / mp for n, mp in zip(names, mpix)])}
+                for model in rows[names[0]][key]["models"]} if names else {}
     return out
 
 
@@ -114,9 +135,28 @@ def markdown(rows: dict[str, Any], summary: dict[str, Any], spps: list[int], cei
     return "\n".join(lines) + "\n"
 
 
+def models_markdown(summary: dict[str, Any], spps: list[int]) -> str:
+    """Each model's scored means next to the noisy input's and OIDN's, with seconds per megapixel."""
+    s = summary["scored"]
+    lines = [f"Scored mean over {s['scenes']} scenes; PSNR dB / relMSE / FLIP; s/MP = denoise seconds "
+             "per megapixel (this run, 256-px images).", "",
+             "| denoiser | spp | PSNR | relMSE | FLIP | s/MP |", "|---|---:|---:|---:|---:|---:|"]
+    for spp in spps:
+        m = s[str(spp)]
+        lines.append(f"| noisy | {spp} | {m['noisy_psnr']:.2f} | {m['noisy_relmse']:.4f} | "
+                     f"{m['noisy_flip']:.3f} | - |")
+        for name, e in m["models"].items():
+            lines.append(f"| {name} | {spp} | {e['psnr']:.2f} | {e['relmse']:.4f} | {e['flip']:.3f} | "
+                         f"{e['s_per_mp']:.2f} |")
+        lines.append(f"| OIDN | {spp} | {m['oidn_psnr']:.2f} | {m['oidn_relmse']:.4f} | "
+                     f"{m['oidn_flip']:.3f} | {m['oidn_s_per_mp']:.2f} |")
+    return "\n".join(lines) + "\n"
+
+
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--model", help="checkpoint (default: the shipped weights)")
+    p.add_argument("--models", help="comma-separated preset names or checkpoints, all on the same renders")
     p.add_argument("--spp", default="16,128")
     p.add_argument("--scenes", help="comma-separated subset of scene folder names")
     p.add_argument("--ceiling-db", type=float, default=40.0,
@@ -137,14 +177,27 @@ def main() -> int:
             print(f"evaluate: unknown scene(s): {', '.join(missing)}", file=sys.stderr)
             return 1
         names = [n for n in names if n in wanted]
-    denoiser = Denoiser(args.model)
+    if args.model and args.models:
+        print("evaluate: give --model or --models, not both", file=sys.stderr)
+        return 2
+    try:
+        specs = args.models.split(",") if args.models else [args.model]
+        denoisers = {spec if spec else "default": Denoiser(spec) for spec in specs}
+    except DenoiserError as exc:
+        print(f"evaluate: {exc}", file=sys.stderr)
+        return 1
+    for d in denoisers.values():  # first calls pay one-off set-up: keep it out of the timings
+        d.denoise_array(np.full((64, 64, 3), 0.5, dtype=np.float32))
+    denoiser = next(iter(denoisers.values()))
     start = time.perf_counter()
     rows: dict[str, Any] = {}
     for name in tqdm(names, desc="eval scenes", unit="scene"):
-        rows[name] = evaluate_scene(eval_dir / name, spps, denoiser)
+        rows[name] = evaluate_scene(eval_dir / name, spps, denoisers)
     summary = summarize(rows, spps, args.ceiling_db)
     result = {"model": {"path": str(denoiser.path), "sha256": denoiser.sha256,
                         "config": denoiser.config.to_dict(), "step": denoiser.meta.get("step")},
+              "models": {name: {"path": str(d.path), "sha256": d.sha256, "config": d.config.to_dict(),
+                                "step": d.meta.get("step")} for name, d in denoisers.items()},
               "spp": spps, "seed": SEED, "ceiling_db": args.ceiling_db, "summary": summary,
               "scenes": rows, "wall_s": time.perf_counter() - start,
               "machine": {"cpu": platform.processor() or platform.machine(), "cores": _cores()}}
@@ -152,6 +205,8 @@ def main() -> int:
     out.mkdir(parents=True, exist_ok=True)
     write_text_atomic(out / "evaluate.json", json.dumps(result, indent=1, default=_json_default) + "\n")
     table = markdown(rows, summary, spps, args.ceiling_db, denoiser.name)
+    if len(denoisers) > 1:
+        table += "\n" + models_markdown(summary, spps)
     write_text_atomic(out / "evaluate.md", table)
     print(table)
     print(f"wrote {out / 'evaluate.json'} and {out / 'evaluate.md'}")

@@ -1,6 +1,6 @@
 """Command-line entry point ``train``: parse flags, build a :class:`TrainConfig`, call the library.
 
-    train --data DIR --out RUN_DIR [--config FILE.json] [--preset fast|balanced|high] [--steps N] ...
+    train --data DIR --out RUN_DIR [--config FILE.json] [--preset fast|balanced|high|paper] [--steps N] ...
     train --out RUN_DIR --resume [--steps N]
     train --nproc N ...     (DDP on N local processes via torchrun; or: torchrun ... -m model.cli ...)
 
@@ -30,7 +30,8 @@ _FLAGS = {  # argparse dest -> TrainConfig field
     "log_every": "log_every", "val_every": "val_every", "ckpt_every": "ckpt_every", "threads": "threads",
     "channels_last": "channels_last", "bf16": "bf16", "compile": "compile", "oidn": "oidn",
     "prefetch": "prefetch", "progress": "progress", "max_bad_steps": "max_bad_steps",
-    "micro_batch": "micro_batch",
+    "micro_batch": "micro_batch", "init_from": "init_from", "lr_decay": "lr_decay",
+    "lr_decay_every": "lr_decay_every", "converged_pairs": "converged_pairs",
 }
 _MODEL_FLAGS = ("arch", "transfer", "output", "aux_inputs")
 
@@ -50,7 +51,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--config", help="JSON file with TrainConfig fields")
     p.add_argument("--resume", action="store_true", default=False, help="continue the run in --out")
     p.add_argument("--steps", type=int, help="total optimiser steps (default 100000)")
-    p.add_argument("--preset", choices=sorted(PRESETS), help="model size preset (default balanced)")
+    p.add_argument("--preset", choices=sorted(PRESETS), help="model size preset (default paper)")
     p.add_argument("--arch", choices=["densenet", "plaincnn"])
     p.add_argument("--transfer", choices=["log", "pu"])
     p.add_argument("--output", choices=["residual", "direct"])
@@ -59,6 +60,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--patch", type=int, help="patch side in pixels (default 28)")
     p.add_argument("--lr", type=float, help="Adam base learning rate (default 0.01)")
     p.add_argument("--grad-clip", type=float, help="clip the gradient L2 norm to this (default off)")
+    p.add_argument("--init-from", metavar="CKPT",
+                   help="start from this shallower densenet's weights, deepened to the model's layers")
+    p.add_argument("--converged-pairs", action="store_const", const=True,
+                   help="also train on (reference, reference) pairs: converged input stays unchanged")
+    p.add_argument("--lr-decay", type=float, help="LR factor per --lr-decay-every steps (default 0.9)")
+    p.add_argument("--lr-decay-every", type=int, help="steps per LR decay (default 10000)")
     p.add_argument("--micro-batch", type=int,
                    help="accumulate gradients over chunks of this size (faster; BatchNorm per chunk)")
     p.add_argument("--seed", type=int)
@@ -91,7 +98,7 @@ def _read_json(path: str) -> dict[str, Any]:
 def _model_config(base: Any, args: argparse.Namespace) -> ModelConfig:
     if isinstance(base, dict) and "preset" in base:
         base = dataclasses.asdict(preset(base["preset"], **{k: v for k, v in base.items() if k != "preset"}))
-    model = ModelConfig.from_dict(base) if isinstance(base, dict) else PRESETS["balanced"]
+    model = ModelConfig.from_dict(base) if isinstance(base, dict) else PRESETS["paper"]
     if args.preset:
         model = PRESETS[args.preset]
     changes = {k: getattr(args, k) for k in _MODEL_FLAGS if getattr(args, k) is not None}

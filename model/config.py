@@ -2,15 +2,20 @@
 
 A :class:`ModelConfig` fully describes a network: it is saved in every checkpoint and the model is
 rebuilt from it alone. Presets (parameter counts for ``aux_inputs=False``, checked by
-``tests/test_model_config.py``):
+``tests/test_model_config.py``), all with the PU transfer and residual output that measured best
+(README, "Choices, measured"):
 
 * ``fast``     — k=8,  L=10, first conv 16 wide:  51,232 parameters (plaincnn: width 14, 52,328)
-* ``balanced`` — k=12, L=20, first conv 24 wide: 261,888 parameters (plaincnn: width 26, 264,832)
-* ``high``     — k=16, L=20, first conv 32 wide: 454,144 parameters (plaincnn: width 34, 455,168)
+* ``balanced`` — k=8,  L=20, first conv 16 wide: 122,112 parameters (plaincnn: width 17, 118,784)
+* ``high``     — k=8,  L=30, first conv 16 wide: 220,192 parameters (plaincnn: width 22, 224,824)
+* ``paper``    — k=12, L=20, first conv 24 wide: 261,888 parameters (plaincnn: width 26, 264,832)
 
-``balanced`` is the paper's network (one dense block of L=20 bottleneck layers, k=12) and the
-default. With ``aux_inputs`` the first conv takes 15 instead of 9 channels (+4,704 / +7,056 /
-+9,408 parameters).
+``fast``, ``balanced`` and ``high`` share growth rate and width, so each is a prefix of the next:
+the deeper ones are trained warm-started from the shallower (:mod:`model.grow`), which is what
+the 2-core CPU affords. ``paper`` is Kim & Lee's network (one dense block of L=20 bottleneck
+layers; k=12 is our choice, the paper gives none) and the default of ``train``. With
+``aux_inputs`` the first conv takes 15 instead of 9 channels (+4,704 parameters, +7,056 for
+``paper``).
 """
 from __future__ import annotations
 
@@ -89,9 +94,10 @@ class ModelConfig:
 
 
 PRESETS: dict[str, ModelConfig] = {
-    "fast": ModelConfig(layers=10, growth=8, init_features=16),
-    "balanced": ModelConfig(layers=20, growth=12, init_features=24),
-    "high": ModelConfig(layers=20, growth=16, init_features=32),
+    "fast": ModelConfig(layers=10, growth=8, init_features=16, transfer="pu"),
+    "balanced": ModelConfig(layers=20, growth=8, init_features=16, transfer="pu"),
+    "high": ModelConfig(layers=30, growth=8, init_features=16, transfer="pu"),
+    "paper": ModelConfig(layers=20, growth=12, init_features=24, transfer="pu"),
 }
 
 

@@ -30,6 +30,7 @@ from pipeline.errors import ExrError
 from pipeline.exr import read_exr
 
 DATASET_VERSION = 1
+CONVERGED_SPP = 0  # TrainingPair.spp of a pair whose input is the reference itself
 
 
 @dataclass(frozen=True)
@@ -125,8 +126,14 @@ def _encode(transfer: TransferFunction, rgb: np.ndarray) -> np.ndarray:
 
 
 def load_training_pairs(root: Path, records: Iterable[SceneRecord], transfer: TransferFunction,
-                        aux: bool, progress: Callable[[int], Any] | None = None) -> list[TrainingPair]:
-    """Every (scene, spp) of ``records`` as a transfer-space :class:`TrainingPair` held in RAM."""
+                        aux: bool, progress: Callable[[int], Any] | None = None,
+                        converged: bool = False) -> list[TrainingPair]:
+    """Every (scene, spp) of ``records`` as a transfer-space :class:`TrainingPair` held in RAM.
+
+    With ``converged`` each scene also gets a pair whose input is its reference itself (``spp``
+    = :data:`CONVERGED_SPP`; aux buffers of its highest spp): it teaches the model to leave an
+    already converged image as it is instead of smoothing it like a noisy one.
+    """
     pairs = []
     for record in records:
         ref = _encode(transfer, _read_rgb(root, record.index, None, "hdr"))
@@ -138,6 +145,9 @@ def load_training_pairs(root: Path, records: Iterable[SceneRecord], transfer: Tr
             if aux:
                 noisy = np.concatenate([noisy, _aux(root, record, spp)], axis=-1)
             pairs.append(TrainingPair(np.ascontiguousarray(noisy), ref, record.index, spp))
+        if converged and record.spp:
+            clean = np.concatenate([ref, _aux(root, record, max(record.spp))], axis=-1) if aux else ref
+            pairs.append(TrainingPair(np.ascontiguousarray(clean), ref, record.index, CONVERGED_SPP))
         if progress is not None:
             progress(1)
     return pairs

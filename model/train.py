@@ -25,6 +25,7 @@ from model.checkpoint import (Checkpoint, model_from_checkpoint, read_checkpoint
                               restore_rng, save_checkpoint)
 from model.dataset import (load_training_pairs, load_val_images, read_dataset_config, read_manifest)
 from model.errors import ConfigError, DatasetError, ModelError, TrainingError
+from model.grow import grow_model
 from model.network import Denoiser, build_model
 from model.patches import TrainingPair, sample_batch
 from model.run_log import RunLog, plot_curves
@@ -159,7 +160,7 @@ class _Run:
         if not train_records:
             raise DatasetError(f"{root}: manifest has no scenes in split 'train'")
         self.pairs = load_training_pairs(root, train_records, get_transfer(config.model.transfer),
-                                         config.model.aux_inputs)
+                                         config.model.aux_inputs, converged=config.converged_pairs)
         val_records = [r for r in records if r.split == "val"]
         self.validator = Validator(load_val_images(root, val_records, config.model.aux_inputs), config.oidn) \
             if val_records and config.val_every else None
@@ -192,6 +193,12 @@ class _Run:
         if ckpt is None:
             torch.manual_seed(self.config.seed)
             model = build_model(self.config.model)
+            if self.config.init_from:
+                source = model_from_checkpoint(read_checkpoint(self.config.init_from))
+                try:
+                    grow_model(model, source)
+                except ConfigError as exc:
+                    raise ConfigError(f"{self.config.init_from}: {exc}") from None
         else:
             model = model_from_checkpoint(ckpt)
             if model.config != self.config.model:

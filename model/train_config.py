@@ -11,7 +11,7 @@ threads; 0 keeps torch's default), ``compile`` (torch.compile; needs a C++ compi
 ``bf16`` (bfloat16 autocast of the forward pass — changes numerics; measure before use),
 ``micro_batch`` (compute the batch in chunks with gradient accumulation: faster on small caches,
 but BatchNorm then uses per-chunk statistics — "ghost batch norm" — so it changes what is learned).
-Measured on the 2-core AVX2 dev machine (benchmarks/train_throughput.py, balanced preset,
+Measured on the 2-core AVX2 dev machine (benchmarks/train_throughput.py, the paper's k=12 L=20,
 batch 64): naive NCHW 21-25 patches/s; channels_last + fused Adam (the defaults) x1.2-1.3;
 + compile x1.2-1.3 (float error like naive NCHW, ~10x below eager channels_last, whose BatchNorm
 variance is computed less precisely: gradient error vs float64 1.3e-3 instead of 1.7e-4);
@@ -40,11 +40,15 @@ class TrainConfig:
 
     ``steps``: total optimiser steps of the run (a resumed run continues up to it); intervals
     (``log_every``, ``val_every``, ``ckpt_every``) are in steps, 0 disables validation.
+    ``init_from``: checkpoint of a shallower densenet (same growth, width, transfer, output) whose
+    weights start a new run (:mod:`model.grow`); the optimiser and step start afresh.
+    ``converged_pairs``: besides each scene's noisy renders, train on (reference, reference) — a
+    converged input must come out unchanged (off in the paper; see README "Choices, measured").
     """
 
     data: str
     out: str
-    model: ModelConfig = field(default_factory=lambda: PRESETS["balanced"])
+    model: ModelConfig = field(default_factory=lambda: PRESETS["paper"])
     patch: PatchConfig = field(default_factory=PatchConfig)
     steps: int = 100_000
     batch: int = 64
@@ -52,6 +56,8 @@ class TrainConfig:
     lr_decay: float = 0.9
     lr_decay_every: int = 10_000
     grad_clip: float | None = None
+    init_from: str | None = None
+    converged_pairs: bool = False
     micro_batch: int | None = None
     seed: int = 0
     log_every: int = 100
@@ -85,6 +91,10 @@ class TrainConfig:
                 isinstance(self.micro_batch, int) and 1 <= self.micro_batch <= self.batch
                 and self.batch % self.micro_batch == 0):
             raise ConfigError(f"micro_batch must divide batch ({self.batch}), got {self.micro_batch!r}")
+        if not isinstance(self.converged_pairs, bool):
+            raise ConfigError(f"converged_pairs must be true or false, got {self.converged_pairs!r}")
+        if self.init_from is not None and not (isinstance(self.init_from, str) and self.init_from):
+            raise ConfigError(f"init_from must be a checkpoint path or null, got {self.init_from!r}")
         if self.grad_clip is not None and not (isinstance(self.grad_clip, (int, float)) and self.grad_clip > 0):
             raise ConfigError(f"grad_clip must be > 0 or null, got {self.grad_clip!r}")
 

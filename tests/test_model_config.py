@@ -8,7 +8,7 @@ from model.errors import ConfigError
 from model.network import build_model, count_parameters, densenet_params
 
 # Documented in model/config.py; changing an architecture detail must update both.
-EXPECTED_PARAMS = {"fast": 51_232, "balanced": 261_888, "high": 454_144}
+EXPECTED_PARAMS = {"fast": 51_232, "balanced": 122_112, "high": 220_192, "paper": 261_888}
 
 
 def test_presets_exist_and_grow() -> None:

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from model.dataset import load_training_pairs, load_val_images, read_dataset_config, read_manifest
+from model.dataset import CONVERGED_SPP, load_training_pairs, load_val_images, read_dataset_config, read_manifest
 from model.errors import DatasetError
 from model.synthetic import write_synthetic_dataset
 from model.transfer import get_transfer
@@ -40,6 +40,20 @@ def test_training_pairs_in_transfer_space(dataset: Path) -> None:
     np.testing.assert_allclose(pairs[3].noisy[..., :3], expected, rtol=1e-6)
     plain = load_training_pairs(dataset, records, transfer, aux=False)
     assert plain[0].noisy.shape == (24, 32, 3)
+
+
+def test_converged_pairs_feed_the_reference_itself(dataset: Path) -> None:
+    transfer = get_transfer("pu")
+    records = [r for r in read_manifest(dataset) if r.split == "train"]
+    pairs = load_training_pairs(dataset, records, transfer, aux=True, converged=True)
+    assert [(p.scene, p.spp) for p in pairs] == [(0, 4), (0, 16), (0, CONVERGED_SPP), (1, 4), (1, 16),
+                                                (1, CONVERGED_SPP)]
+    clean, noisy16 = pairs[5], pairs[4]
+    np.testing.assert_array_equal(clean.noisy[..., :3], clean.ref)
+    np.testing.assert_array_equal(clean.noisy[..., 3:], noisy16.noisy[..., 3:])  # aux of the highest spp
+    assert not np.array_equal(noisy16.noisy[..., :3], noisy16.ref)
+    plain = load_training_pairs(dataset, records, transfer, aux=False, converged=True)
+    assert plain[2].noisy.shape == (24, 32, 3) and np.array_equal(plain[2].noisy, plain[2].ref)
 
 
 def test_val_images_linear(dataset: Path) -> None:

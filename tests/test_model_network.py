@@ -50,7 +50,7 @@ def test_shapes_every_preset(name: str, arch: str, aux: bool) -> None:
 
 
 def test_dense_block_structure() -> None:
-    model = build_model(preset("balanced"))
+    model = build_model(preset("paper"))
     block = model.body
     assert isinstance(block, DenseBlock) and len(block.layers) == 20
     assert block.out_channels == 24 + 20 * 12
@@ -59,7 +59,7 @@ def test_dense_block_structure() -> None:
     assert first[2].kernel_size == (1, 1) and first[2].out_channels == 48
     assert first[5].kernel_size == (3, 3) and first[5].out_channels == 12
     assert model.head[0].kernel_size == (7, 7) and model.tail[-1].kernel_size == (3, 3)
-    assert isinstance(build_model(preset("balanced", arch="plaincnn")).body, PlainStack)
+    assert isinstance(build_model(preset("paper", arch="plaincnn")).body, PlainStack)
 
 
 def test_residual_and_direct_modes() -> None:
@@ -76,7 +76,7 @@ def test_residual_and_direct_modes() -> None:
 
 def test_he_init() -> None:
     torch.manual_seed(0)
-    model = build_model(preset("balanced"))
+    model = build_model(preset("paper"))
     conv = model.body.layers[19].body[2]  # 1x1 conv with 252 inputs
     fan_in = conv.weight[0].numel()
     assert float(conv.weight.detach().std()) == pytest.approx((2.0 / fan_in) ** 0.5, rel=0.1)

@@ -1,0 +1,55 @@
+"""Deepen a trained DenseNet without changing what it computes (a Net2Net-style warm start).
+
+A dense block of L layers is a prefix of one of L' > L layers with the same growth rate, first-conv
+width and bottleneck: layer i sees ``c0 + i*k`` channels either way. :func:`grow_model` copies the
+source's head, its L layers and its tail BatchNorm into the deeper model, and sets the tail conv's
+weights on the ``(L'-L)*k`` new channels to zero. The new layers keep their He init, so they learn
+from the first step (the tail weights on their outputs receive gradient), while the grown model in
+eval mode computes exactly the source's output — training starts from the source's quality instead
+of from the identity. The residual model's zero-initialised last conv works the same way.
+"""
+from __future__ import annotations
+
+import torch
+
+from model.config import ModelConfig
+from model.errors import ConfigError
+from model.network import Denoiser
+
+_SAME = ("arch", "growth", "init_features", "bottleneck", "transfer", "output", "aux_inputs")
+
+
+def check_growable(source: ModelConfig, target: ModelConfig) -> None:
+    """Raise :class:`ConfigError` unless ``target`` is ``source`` with at least as many layers."""
+    if source.arch != "densenet" or target.arch != "densenet":
+        raise ConfigError("only densenet models can be grown (plaincnn has no dense block)")
+    diff = [f"{k}: {getattr(source, k)!r} vs {getattr(target, k)!r}" for k in _SAME
+            if getattr(source, k) != getattr(target, k)]
+    if diff:
+        raise ConfigError(f"cannot grow the model: it differs from the source in {'; '.join(diff)}")
+    if target.layers < source.layers:
+        raise ConfigError(f"cannot grow {source.layers} layers into {target.layers} (fewer)")
+
+
+@torch.no_grad()
+def grow_model(target: Denoiser, source: Denoiser) -> None:
+    """Overwrite ``target``'s head, first layers and tail with ``source``'s (see module docstring).
+
+    ``target``'s extra layers keep their current (He) init. Raises :class:`ConfigError` if the
+    configs are not growable. Afterwards ``target.eval()(x) == source.eval()(x)`` up to rounding.
+    """
+    check_growable(source.config, target.config)
+    src_layers = len(source.body.layers)
+    copied = ("head.", *(f"body.layers.{i}." for i in range(src_layers)))
+    target_state = target.state_dict()
+    for key, value in source.state_dict().items():
+        if key.startswith(copied):
+            target_state[key].copy_(value)
+    c_src = source.body.out_channels
+    src_bn, dst_bn = source.tail[0], target.tail[0]
+    for name in ("weight", "bias", "running_mean", "running_var"):
+        getattr(dst_bn, name)[:c_src] = getattr(src_bn, name)
+    dst_bn.num_batches_tracked.copy_(src_bn.num_batches_tracked)
+    conv = target.tail[-1].weight
+    conv.zero_()
+    conv[:, :c_src] = source.tail[-1].weight

@@ -1,0 +1,99 @@
+"""Growing a trained DenseNet deeper: the grown model computes the source's output, then learns."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+import torch
+
+from model.checkpoint import load_model, save_checkpoint
+from model.cli import main
+from model.config import ModelConfig
+from model.errors import ConfigError
+from model.grow import grow_model
+from model.network import build_model
+from model.synthetic import write_synthetic_dataset
+
+SMALL = ModelConfig(layers=2, growth=4, init_features=8, transfer="pu")
+
+
+def _trained_like(config: ModelConfig, seed: int) -> torch.nn.Module:
+    """A model with random non-trivial weights and BN statistics (as if trained)."""
+    torch.manual_seed(seed)
+    model = build_model(config)
+    with torch.no_grad():
+        for name, tensor in model.state_dict().items():
+            if tensor.is_floating_point():
+                if name.endswith("running_var"):
+                    tensor.uniform_(0.5, 2.0)
+                else:
+                    tensor.normal_(0.0, 0.3)
+    return model.eval()
+
+
+def test_grown_model_computes_the_source_output(rng) -> None:
+    source = _trained_like(SMALL, seed=1)
+    target = build_model(ModelConfig(layers=5, growth=4, init_features=8, transfer="pu"))
+    before_new = target.body.layers[4].body[2].weight.clone()
+    grow_model(target, source)
+    target.eval()
+    x = torch.from_numpy(rng.uniform(0, 1, (2, 3, 19, 23)).astype("float32"))
+    with torch.no_grad():
+        expected, got = source(x), target(x)
+    assert torch.allclose(got, expected, rtol=1e-5, atol=1e-6)
+    assert not torch.allclose(source(x), x)  # the source is no identity: the check means something
+    assert torch.equal(target.body.layers[4].body[2].weight, before_new)  # new layers keep He init
+    assert float(target.tail[-1].weight.detach()[:, source.body.out_channels:].abs().max()) == 0.0
+
+
+def test_new_layers_receive_gradient(rng) -> None:
+    source = _trained_like(SMALL, seed=2)
+    target = build_model(ModelConfig(layers=3, growth=4, init_features=8, transfer="pu"))
+    grow_model(target, source)
+    target.train()
+    x = torch.from_numpy(rng.uniform(0, 1, (4, 3, 16, 16)).astype("float32"))
+    target(x).square().mean().backward()
+    assert float(target.tail[-1].weight.grad[:, source.body.out_channels:].abs().max()) > 0
+
+
+@pytest.mark.parametrize("change", [{"growth": 5}, {"init_features": 9}, {"transfer": "log"},
+                                    {"output": "direct"}, {"layers": 1}, {"arch": "plaincnn"}])
+def test_incompatible_models_are_refused(change: dict) -> None:
+    source = build_model(SMALL)
+    fields = {**SMALL.to_dict(), "layers": 4, **change}
+    with pytest.raises(ConfigError, match="grow"):
+        grow_model(build_model(ModelConfig(**fields)), source)
+
+
+def test_train_init_from_starts_at_the_source(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    data = write_synthetic_dataset(tmp_path / "ds", scenes=2, res=(32, 32), spp=(4, 16), val_scenes=(1,))
+    source = tmp_path / "source.ckpt"
+    save_checkpoint(source, _trained_like(SMALL, seed=3), step=7)
+    config = tmp_path / "config.json"
+    config.write_text(json.dumps({"model": {**SMALL.to_dict(), "layers": 4}}))
+    run = tmp_path / "run"
+    rc = main(["--data", str(data), "--out", str(run), "--config", str(config), "--init-from", str(source),
+               "--steps", "2", "--batch", "4", "--lr", "1e-4", "--lr-decay", "0.5", "--lr-decay-every", "1",
+               "--val-every", "0", "--log-every", "1", "--converged-pairs", "--no-progress"])
+    assert rc == 0, capsys.readouterr().err
+    model, cfg, meta = load_model(run / "last.ckpt")
+    assert cfg.layers == 4 and meta["train_config"]["init_from"] == str(source)
+    assert meta["train_config"]["converged_pairs"] is True
+    lrs = [json.loads(line)["lr"] for line in (run / "log.jsonl").read_text().splitlines()]
+    assert lrs == pytest.approx([1e-4, 5e-5])
+    src = load_model(source)[0]
+    # two small steps from the source: the copied head moved a little, not back to a random init
+    delta = (model.head[0].weight - src.head[0].weight).detach().abs().max()
+    assert 0 < float(delta) < 0.01
+
+
+def test_train_init_from_an_incompatible_checkpoint_is_one_line(tmp_path: Path,
+                                                                capsys: pytest.CaptureFixture) -> None:
+    data = write_synthetic_dataset(tmp_path / "ds", scenes=1, res=(32, 32), spp=(4,), val_scenes=())
+    source = tmp_path / "source.ckpt"
+    save_checkpoint(source, build_model(SMALL), step=1)
+    rc = main(["--data", str(data), "--out", str(tmp_path / "run"), "--preset", "fast",
+               "--init-from", str(source), "--steps", "1", "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc == 1 and len(err.strip().splitlines()) == 1 and "cannot grow" in err and str(source) in err
