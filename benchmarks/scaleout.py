@@ -340,6 +340,8 @@ def main() -> int:
     cfg = DatasetConfig(res=(args.res, args.res), spp=tuple(int(s) for s in args.spp.split(",")),
                         ref_spp=args.ref_spp, families=tuple(FAMILIES), seed=12345)
     load = os.getloadavg()[0]
+    if load > 0.5:
+        print(f"warning: load average {load:.1f}: other processes are running; the settings they slow get flagged")
     print(f"Dask dataset generation, {args.scenes} scenes at {args.res}px (load average before: {load:.1f})")
     prerun = isolated(measure_prerun, cfg, args.scenes)
     print(f"  untimed pre-run (kernel cache): {prerun['wall_s']:.1f} s")
