@@ -34,6 +34,7 @@ from model.train_config import RESUMABLE_OVERRIDES, TrainConfig
 from model.transfer import get_transfer
 from model.validate import Validator
 from pipeline.atomic_io import TMP_PREFIX, write_text_atomic
+from pipeline.denoise import file_sha256
 
 # dataset.json fields a resumed run must see unchanged
 _DATA_KEYS = ("spp", "ref_spp", "filter", "aovs")
@@ -171,6 +172,9 @@ class _Run:
         self.guard = NonFiniteGuard(config.max_bad_steps, int(extra.get("skipped_total", 0)))
         self.meter = _LossMeter(**extra.get("meter", {}))
         self.train_s = float(extra.get("train_s", 0.0))  # optimisation seconds so far, all sittings
+        # identity of the --init-from weights (the file at that path may be replaced later)
+        self.init_from: dict[str, Any] | None = extra.get("init_from") if ckpt else (
+            {"path": config.init_from, "sha256": file_sha256(Path(config.init_from))} if config.init_from else None)
         self.saved_step: int | None = self.step if ckpt else None
         if ckpt:
             self.log.truncate_after(self.step)
@@ -226,7 +230,7 @@ class _Run:
         save_checkpoint(path, self.model, step=self.step, optimizer=self.optimizer,
                         train_config=self.config.to_dict(), data_config=self.data_config,
                         extra={"best_psnr": self.best_psnr, "skipped_total": self.guard.skipped_total,
-                               "meter": meter, "train_s": self.train_s})
+                               "meter": meter, "train_s": self.train_s, "init_from": self.init_from})
         if path == self.last_path:
             self.saved_step = self.step
 

@@ -14,6 +14,7 @@ from model.errors import ConfigError
 from model.grow import grow_model
 from model.network import build_model
 from model.synthetic import write_synthetic_dataset
+from pipeline.denoise import file_sha256
 
 SMALL = ModelConfig(layers=2, growth=4, init_features=8, transfer="pu")
 
@@ -80,6 +81,7 @@ def test_train_init_from_starts_at_the_source(tmp_path: Path, capsys: pytest.Cap
     model, cfg, meta = load_model(run / "last.ckpt")
     assert cfg.layers == 4 and meta["train_config"]["init_from"] == str(source)
     assert meta["train_config"]["converged_pairs"] is True
+    assert meta["extra"]["init_from"] == {"path": str(source), "sha256": file_sha256(source)}
     lrs = [json.loads(line)["lr"] for line in (run / "log.jsonl").read_text().splitlines()]
     assert lrs == pytest.approx([1e-4, 5e-5])
     src = load_model(source)[0]
