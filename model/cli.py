@@ -32,6 +32,7 @@ _FLAGS = {  # argparse dest -> TrainConfig field
     "prefetch": "prefetch", "progress": "progress", "max_bad_steps": "max_bad_steps",
     "micro_batch": "micro_batch", "init_from": "init_from", "lr_decay": "lr_decay",
     "lr_decay_every": "lr_decay_every", "converged_pairs": "converged_pairs",
+    "lr_warmup": "lr_warmup",
 }
 _MODEL_FLAGS = ("arch", "transfer", "output", "aux_inputs")
 
@@ -65,6 +66,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--converged-pairs", action="store_const", const=True,
                    help="also train on (reference, reference) pairs: converged input stays unchanged")
     p.add_argument("--lr-decay", type=float, help="LR factor per --lr-decay-every steps (default 0.9)")
+    p.add_argument("--lr-warmup", type=int, help="steps of linear LR warm-up (default 0)")
     p.add_argument("--lr-decay-every", type=int, help="steps per LR decay (default 10000)")
     p.add_argument("--micro-batch", type=int,
                    help="accumulate gradients over chunks of this size (faster; BatchNorm per chunk)")

@@ -17,9 +17,11 @@ from model.errors import TrainingError
 from model.loss import denoising_loss
 
 
-def learning_rate(base_lr: float, decay: float, decay_every: int, step: int) -> float:
-    """Step schedule: ``base_lr * decay ** (step // decay_every)`` (step counts from 0)."""
-    return base_lr * decay ** (step // decay_every)
+def learning_rate(base_lr: float, decay: float, decay_every: int, step: int, warmup: int = 0) -> float:
+    """Step schedule: ``base_lr * decay ** (step // decay_every)`` (step counts from 0), ramped up
+    linearly over the first ``warmup`` steps (``(step + 1) / warmup`` of it)."""
+    ramp = min(1.0, (step + 1) / warmup) if warmup > 0 else 1.0
+    return base_lr * decay ** (step // decay_every) * ramp
 
 
 class NonFiniteGuard:

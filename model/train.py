@@ -241,7 +241,7 @@ class _Run:
         self.train_s += max(elapsed, 0.0)
         self.log.append({"type": "train", "step": self.step, "loss": m.total / m.count if m.count else None,
                          "lr": learning_rate(self.config.lr, self.config.lr_decay, self.config.lr_decay_every,
-                                             self.step - 1),
+                                             self.step - 1, self.config.lr_warmup),
                          "skipped": m.skipped, "skipped_total": self.guard.skipped_total,
                          "train_s": self.train_s,
                          "patches_per_s": (m.count + m.skipped) * self.config.batch / elapsed
@@ -263,7 +263,7 @@ class _Run:
 def _one_step(run: _Run, net: torch.nn.Module, source: BatchSource, bar: ProgressBar | None) -> None:
     config = run.config
     noisy, ref = source.get(run.step)
-    lr = learning_rate(config.lr, config.lr_decay, config.lr_decay_every, run.step)
+    lr = learning_rate(config.lr, config.lr_decay, config.lr_decay_every, run.step, config.lr_warmup)
     result = train_step(net, run.optimizer, noisy, ref, step=run.step, lr=lr, guard=run.guard,
                         grad_clip=config.grad_clip, bf16=config.bf16, micro_batch=config.micro_batch,
                         reduce_loss=run.reduce_loss)

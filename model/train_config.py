@@ -40,6 +40,7 @@ class TrainConfig:
 
     ``steps``: total optimiser steps of the run (a resumed run continues up to it); intervals
     (``log_every``, ``val_every``, ``ckpt_every``) are in steps, 0 disables validation.
+    ``lr_warmup``: steps over which the LR ramps up linearly from lr/lr_warmup (0: none).
     ``init_from``: checkpoint of a shallower densenet (same growth, width, transfer, output) whose
     weights start a new run (:mod:`model.grow`); the optimiser and step start afresh.
     ``converged_pairs``: besides each scene's noisy renders, train on (reference, reference) — a
@@ -55,6 +56,7 @@ class TrainConfig:
     lr: float = 0.01
     lr_decay: float = 0.9
     lr_decay_every: int = 10_000
+    lr_warmup: int = 0
     grad_clip: float | None = None
     init_from: str | None = None
     converged_pairs: bool = False
@@ -79,7 +81,7 @@ class TrainConfig:
             value = getattr(self, name)
             if not isinstance(value, int) or isinstance(value, bool) or value < 1:
                 raise ConfigError(f"{name} must be a positive integer, got {value!r}")
-        for name in ("val_every", "threads", "seed"):
+        for name in ("val_every", "threads", "seed", "lr_warmup"):
             value = getattr(self, name)
             if not isinstance(value, int) or isinstance(value, bool) or value < 0:
                 raise ConfigError(f"{name} must be an integer >= 0, got {value!r}")

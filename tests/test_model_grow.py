@@ -75,7 +75,7 @@ def test_train_init_from_starts_at_the_source(tmp_path: Path, capsys: pytest.Cap
     config.write_text(json.dumps({"model": {**SMALL.to_dict(), "layers": 4}}))
     run = tmp_path / "run"
     rc = main(["--data", str(data), "--out", str(run), "--config", str(config), "--init-from", str(source),
-               "--steps", "2", "--batch", "4", "--lr", "1e-4", "--lr-decay", "0.5", "--lr-decay-every", "1",
+               "--steps", "2", "--batch", "4", "--lr", "1e-4", "--lr-decay", "0.5", "--lr-decay-every", "1", "--lr-warmup", "2",
                "--val-every", "0", "--log-every", "1", "--converged-pairs", "--no-progress"])
     assert rc == 0, capsys.readouterr().err
     model, cfg, meta = load_model(run / "last.ckpt")
@@ -83,7 +83,7 @@ def test_train_init_from_starts_at_the_source(tmp_path: Path, capsys: pytest.Cap
     assert meta["train_config"]["converged_pairs"] is True
     assert meta["extra"]["init_from"] == {"path": str(source), "sha256": file_sha256(source)}
     lrs = [json.loads(line)["lr"] for line in (run / "log.jsonl").read_text().splitlines()]
-    assert lrs == pytest.approx([1e-4, 5e-5])
+    assert lrs == pytest.approx([1e-4 / 2, 5e-5])  # warm-up: step 0 at half the LR
     src = load_model(source)[0]
     # two small steps from the source: the copied head moved a little, not back to a random init
     delta = (model.head[0].weight - src.head[0].weight).detach().abs().max()
