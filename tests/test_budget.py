@@ -41,7 +41,8 @@ def test_single_model_gets_the_largest_spp_that_fits() -> None:
     (3.0, "fast"),       # 1/3 of 3 = 1: only fast is cheap enough
     (2.6, "fast"),       # nothing within 1/3: the fastest that fits
 ])
-def test_auto_rule_without_curves(left: float, expected: str) -> None:
+def test_auto_rule_without_curves(left: float, expected: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(budget, "PRESET_ORDER", ("high", "balanced", "fast"))  # best first, here
     plan = plan_budget(left, 0.0, RENDER, PRESETS)
     assert plan.model == expected
     assert plan.spp == fit_spp(left, RENDER, PRESETS[expected])
