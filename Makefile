@@ -24,7 +24,7 @@ bootstrap: llvm $(STAMP)
 llvm:
 	@if ls /usr/lib/*-linux-gnu/libLLVM-1[6-9].so* /usr/lib/*-linux-gnu/libLLVM-[2-9][0-9].so* \
 	      /usr/lib/*-linux-gnu/libLLVM.so.1[6-9]* /usr/lib/*-linux-gnu/libLLVM.so.[2-9][0-9]* \
-	      >/dev/null 2>&1; then :; \
+	      2>/dev/null | grep -q .; then :; \
 	elif [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
 	  echo "installing libllvm19 (Mitsuba's LLVM backend needs LLVM >= 16)"; \
 	  (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libllvm19 >/dev/null) \
