@@ -29,7 +29,7 @@ from model.grow import grow_model
 from model.network import Denoiser, build_model
 from model.patches import TrainingPair, sample_batch
 from model.run_log import RunLog, plot_curves
-from model.step import NonFiniteGuard, learning_rate, train_step
+from model.step import NonFiniteGuard, train_step
 from model.train_config import RESUMABLE_OVERRIDES, TrainConfig
 from model.transfer import get_transfer
 from model.validate import Validator
@@ -240,8 +240,7 @@ class _Run:
         elapsed = time.perf_counter() - m.started - m.paused
         self.train_s += max(elapsed, 0.0)
         self.log.append({"type": "train", "step": self.step, "loss": m.total / m.count if m.count else None,
-                         "lr": learning_rate(self.config.lr, self.config.lr_decay, self.config.lr_decay_every,
-                                             self.step - 1, self.config.lr_warmup),
+                         "lr": self.config.lr_at(self.step - 1),
                          "skipped": m.skipped, "skipped_total": self.guard.skipped_total,
                          "train_s": self.train_s,
                          "patches_per_s": (m.count + m.skipped) * self.config.batch / elapsed
@@ -263,7 +262,7 @@ class _Run:
 def _one_step(run: _Run, net: torch.nn.Module, source: BatchSource, bar: ProgressBar | None) -> None:
     config = run.config
     noisy, ref = source.get(run.step)
-    lr = learning_rate(config.lr, config.lr_decay, config.lr_decay_every, run.step, config.lr_warmup)
+    lr = config.lr_at(run.step)
     result = train_step(net, run.optimizer, noisy, ref, step=run.step, lr=lr, guard=run.guard,
                         grad_clip=config.grad_clip, bf16=config.bf16, micro_batch=config.micro_batch,
                         reduce_loss=run.reduce_loss)

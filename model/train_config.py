@@ -26,6 +26,7 @@ from typing import Any
 from model.config import ModelConfig, PRESETS
 from model.errors import ConfigError
 from model.patches import PatchConfig
+from model.step import learning_rate
 
 # Fields that may differ on --resume without changing what is being trained.
 RESUMABLE_OVERRIDES = frozenset({
@@ -99,6 +100,10 @@ class TrainConfig:
             raise ConfigError(f"init_from must be a checkpoint path or null, got {self.init_from!r}")
         if self.grad_clip is not None and not (isinstance(self.grad_clip, (int, float)) and self.grad_clip > 0):
             raise ConfigError(f"grad_clip must be > 0 or null, got {self.grad_clip!r}")
+
+    def lr_at(self, step: int) -> float:
+        """Learning rate of optimiser step ``step`` (from 0): decay schedule and warm-up."""
+        return learning_rate(self.lr, self.lr_decay, self.lr_decay_every, step, self.lr_warmup)
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready dict (nested configs as dicts)."""

@@ -36,6 +36,8 @@ def test_learning_rate_schedule() -> None:
     assert learning_rate(0.01, 0.9, 10_000, 9_999) == pytest.approx(0.01)
     assert learning_rate(0.01, 0.9, 10_000, 10_000) == pytest.approx(0.009)
     assert learning_rate(0.01, 0.9, 10_000, 25_000) == pytest.approx(0.0081)
+    assert learning_rate(0.01, 0.9, 10_000, 0, warmup=4) == pytest.approx(0.0025)
+    assert learning_rate(0.01, 0.9, 10_000, 3, warmup=4) == pytest.approx(0.01)
 
 
 def test_step_sets_lr() -> None:
