@@ -2,13 +2,15 @@
 converged 4096-spp image before and after denoising, and peak memory denoising an 8K image.
 
     .venv/bin/python benchmarks/extremes.py [--model PATH] [--quick] [--size 7680x4320]
-        [--max-memory-mb 1024]
+        [--max-memory-mb 1024] [--parts energy,converged,memory]
 
 * energy: scenes rendered at 16 spp (the bundled demo; without --quick also three eval scenes from
   ../shared/eval-scenes): mean radiance of the denoised image / that of the noisy input (an unbiased
   estimate), at the render's own exposure and rescaled to mean 1e-4 and 1e3 (then scaled back);
   plus the largest output for an all-zero image and the interior error for constant images.
-* converged: the demo at 4096 spp against a 16384-spp reference: tonemapped PSNR noisy vs denoised.
+* converged: the demo at 4096 spp (24 px; without --quick also 64 px) against a 16384-spp
+  reference: tonemapped PSNR of the noisy render, the model alone and the model with the noise
+  guard (pipeline/noise_guard.py, render-and-denoise's default).
 * memory: a child process denoises a WxH HDR image (default 7680x4320, --quick 960x540) under
   ``--max-memory-mb``; its peak RSS (ru_maxrss) against its RSS before the call (model loaded,
   image in RAM, one small warm-up image denoised).
@@ -35,6 +37,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from pipeline.denoise import DEFAULT_WEIGHTS, Denoiser, file_sha256  # noqa: E402
 from pipeline.metrics import psnr  # noqa: E402
+from pipeline.noise_guard import strength_for  # noqa: E402
 from pipeline.render import render  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -77,13 +80,20 @@ def energy(den: Denoiser, names: list[str], res: tuple[int, int]) -> dict[str, A
             "worst_ratio_error": worst}
 
 
-def converged(den: Denoiser, size: int) -> dict[str, Any]:
-    """PSNR against a 16384-spp reference of the demo at 4096 spp, noisy vs denoised."""
-    noisy = render(DEMO, 4096, seed=1, resolution=(size, size)).rgb
-    reference = render(DEMO, 16384, seed=2, resolution=(size, size)).rgb
-    out = den.denoise_array(noisy).image
-    return {"size": size, "psnr_noisy_db": psnr(noisy, reference), "psnr_denoised_db": psnr(out, reference),
-            "mean_ratio": float(out.mean() / noisy.mean())}
+def converged(den: Denoiser, sizes: tuple[int, ...]) -> dict[str, Any]:
+    """PSNR against a 16384-spp reference of the demo at 4096 spp (a render in two halves): noisy,
+    the model alone, and the model with the noise guard (render-and-denoise's default)."""
+    rows = {}
+    for size in sizes:
+        noisy = render(DEMO, 4096, seed=1, resolution=(size, size), halves=True)
+        reference = render(DEMO, 16384, seed=2, resolution=(size, size)).rgb
+        out = den.denoise_array(noisy.rgb).image
+        guarded = den.denoise_array(noisy.rgb, variance=noisy.variance, strength=strength_for(4096)).image
+        rows[str(size)] = {"psnr_noisy_db": psnr(noisy.rgb, reference), "psnr_denoised_db": psnr(out, reference),
+                           "psnr_guarded_db": psnr(guarded, reference),
+                           "mean_ratio": float(out.mean() / noisy.rgb.mean()),
+                           "mean_ratio_guarded": float(guarded.mean() / noisy.rgb.mean())}
+    return rows
 
 
 def _rss_mb() -> float:
@@ -128,9 +138,13 @@ def _table(result: dict[str, Any]) -> list[str]:
     lines.append(f"worst |ratio - 1|: {e['worst_ratio_error']:.4f}; all-zero image -> max {e['zero_max']:.3g}")
     lines.append("constant images (interior): " + ", ".join(
         f"{v}: mean {row['mean_rel_error']:+.4f} std {row['std_rel']:.4f}" for v, row in e["constants"].items()))
-    lines += ["", f"demo {c['size']}px at 4096 spp vs 16384-spp reference: PSNR noisy {c['psnr_noisy_db']:.2f} dB,"
-              f" denoised {c['psnr_denoised_db']:.2f} dB ({c['psnr_denoised_db'] - c['psnr_noisy_db']:+.2f})", "",
-              f"memory {m['width']}x{m['height']} ({m['image_mb']:.0f} MiB image) under --max-memory-mb "
+    lines.append("")
+    for size, row in c.items():
+        lines.append(f"demo {size}px at 4096 spp vs 16384-spp reference: PSNR noisy {row['psnr_noisy_db']:.2f} dB, "
+                     f"model {row['psnr_denoised_db']:.2f} dB ({row['psnr_denoised_db'] - row['psnr_noisy_db']:+.2f}), "
+                     f"with the noise guard {row['psnr_guarded_db']:.2f} dB "
+                     f"({row['psnr_guarded_db'] - row['psnr_noisy_db']:+.2f})")
+    lines += ["", f"memory {m['width']}x{m['height']} ({m['image_mb']:.0f} MiB image) under --max-memory-mb "
               f"{m['max_memory_mb']:g}: peak RSS {m['peak_rss_mb']:.0f} MiB, {m['over_base_mb']:.0f} MiB over the "
               f"process before the call; {m['tiles']} tiles of core {m['core']}, {m['seconds']:.1f} s "
               f"({m['megapixels_per_s']:.3f} Mpx/s)"]
@@ -143,7 +157,12 @@ def main() -> None:
     p.add_argument("--quick", action="store_true", help="demo only, small images, 960x540 memory run")
     p.add_argument("--size", help="memory run image WxH (default 7680x4320, --quick 960x540)")
     p.add_argument("--max-memory-mb", type=float, default=1024.0)
+    p.add_argument("--parts", default="energy,converged,memory",
+                   help="comma-separated parts to measure (the others keep their recorded figures)")
     args = p.parse_args()
+    parts = set(args.parts.split(","))
+    if not parts <= {"energy", "converged", "memory"}:
+        raise SystemExit(f"extremes: unknown part in --parts {args.parts!r}")
     model = args.model or str(DEFAULT_WEIGHTS)
     if not Path(model).exists():
         raise SystemExit(f"extremes: {model}: no shipped weights yet; pass --model PATH")
@@ -151,15 +170,21 @@ def main() -> None:
     den = Denoiser(model, max_memory_mb=args.max_memory_mb)
     mode = "quick" if args.quick else "full"
     names = ["demo"] + ([] if args.quick else [n for n in EVAL_SCENES if (EVAL / n).is_dir()])
-    result = {
+    previous = json.loads(RESULTS.read_text()) if RESULTS.exists() else {}
+    result = {k: v for k, v in previous.get(mode, {}).items() if k in ("energy", "converged", "memory")}
+    result.update({
         "mode": mode, "model": Path(model).name, "model_sha256": file_sha256(Path(model)),
         "machine": f"{platform.machine()}, {os.cpu_count()} cores (load {os.getloadavg()[0]:.1f} at start)",
-        "energy": energy(den, names, (48, 48) if args.quick else (128, 96)),
-        "converged": converged(den, 24 if args.quick else 64),
-        "memory": memory(model, width, height, args.max_memory_mb),
-    }
+    })
+    if "energy" in parts:
+        result["energy"] = energy(den, names, (48, 48) if args.quick else (128, 96))
+    if "converged" in parts:
+        result["converged"] = converged(den, (24,) if args.quick else (24, 64))
+    if "memory" in parts:
+        result["memory"] = memory(model, width, height, args.max_memory_mb)
+    if not {"energy", "converged", "memory"} <= set(result):
+        raise SystemExit("extremes: no recorded figures for the parts not measured; run all parts once")
     print("\n".join(_table(result)))
-    previous = json.loads(RESULTS.read_text()) if RESULTS.exists() else {}
     previous[mode] = result
     RESULTS.parent.mkdir(parents=True, exist_ok=True)
     RESULTS.write_text(json.dumps(previous, indent=1) + "\n")

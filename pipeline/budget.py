@@ -149,8 +149,12 @@ def load_curves(path: str | Path, metric: str = "relmse") -> Curves:
     return curves
 
 
-def probe_render(scene: Any, seed: int, aovs: Sequence[str], budget_s: float) -> RenderCost:
-    """Measure ``fixed + per_spp * spp`` for a loaded scene (see the module docstring)."""
+def probe_render(scene: Any, seed: int, aovs: Sequence[str], budget_s: float,
+                 halves: bool = False) -> RenderCost:
+    """Measure ``fixed + per_spp * spp`` for a loaded scene (see the module docstring).
+
+    ``halves``: the render will be made in two halves (the noise guard), two calls of the
+    measured fixed cost."""
     start = time.perf_counter()
     render_loaded(scene, 1, seed, aovs)
     rough = render_loaded(scene, 3, seed, aovs).seconds / 3
@@ -161,7 +165,7 @@ def probe_render(scene: Any, seed: int, aovs: Sequence[str], budget_s: float) ->
     fixed = t1 - per
     if per <= 0 or fixed < 0:  # timing noise: no fixed cost, the mean cost per sample
         per, fixed = tp / p, 0.0
-    return RenderCost(fixed, per, time.perf_counter() - start)
+    return RenderCost(2 * fixed if halves else fixed, per, time.perf_counter() - start)
 
 
 def window_pixels(height: int, width: int, core: int, margin: int) -> int:
@@ -203,15 +207,15 @@ def budget_candidates(model: str | None, max_memory_mb: float) -> dict[str, Deno
 
 def plan_run(budget_s: float, started: float, scene: Any, seed: int, aovs: Sequence[str],
              candidates: Mapping[str, Denoiser], curves_path: str | Path | None,
-             log: Callable[[str], None] = lambda s: None) -> BudgetPlan:
+             log: Callable[[str], None] = lambda s: None, halves: bool = False) -> BudgetPlan:
     """Probe the scene and the candidates, then :func:`plan_budget`; ``started`` is the
-    ``time.perf_counter()`` at which the budget began."""
+    ``time.perf_counter()`` at which the budget began; ``halves`` as in :func:`probe_render`."""
     if not budget_s > 0:
         raise BudgetError(f"time budget must be positive, got {budget_s}")
     path = Path(curves_path) if curves_path else (DEFAULT_CURVES if DEFAULT_CURVES.exists() else None)
     curves = load_curves(path) if path and len(candidates) > 1 else None
     log("probing render cost")
-    render = probe_render(scene, seed, aovs, budget_s)
+    render = probe_render(scene, seed, aovs, budget_s, halves)
     width, height = (int(v) for v in scene.sensors()[0].film().crop_size())
     denoise_s = {name: denoise_seconds(den, height, width) for name, den in candidates.items()}
     plan = plan_budget(budget_s, time.perf_counter() - started, render, denoise_s, curves, MAX_SPP)

@@ -73,6 +73,9 @@ def render_parser() -> argparse.ArgumentParser:
                    help="choose spp (and, with --model auto, the preset) to finish within SECONDS")
     p.add_argument("--curves", metavar="TRADEOFF_JSON",
                    help="trade curves (a tradeoff run's tradeoff.json) for --model auto")
+    p.add_argument("--no-noise-guard", action="store_true",
+                   help="render in one piece and keep the denoiser's output as it is (default: render "
+                   "in two halves and keep the render where its noise does not explain the change)")
     p.add_argument("--quiet", action="store_true", help="no summary on stdout")
     return p
 
@@ -91,7 +94,8 @@ def main(argv: list[str] | None = None) -> int:
                     resolution=tuple(args.res) if args.res else None, seed=args.seed,
                     model=args.model, reference=args.reference, reference_spp=args.reference_spp,
                     compare_oidn="oidn" in args.compare, params=dict(args.param),
-                    max_memory_mb=args.max_memory_mb, time_budget=args.time_budget, curves=args.curves)
+                    max_memory_mb=args.max_memory_mb, time_budget=args.time_budget, curves=args.curves,
+                    noise_guard=not args.no_noise_guard)
     log = (lambda s: None) if args.quiet else (lambda s: print(f"... {s}", file=sys.stderr))
     try:
         metrics = run(cfg, log)
@@ -152,6 +156,8 @@ def tradeoff_parser() -> argparse.ArgumentParser:
                    help="scene $parameter")
     p.add_argument("--out", help="output folder (default: <scene name>-tradeoff)")
     p.add_argument("--max-memory-mb", type=float, default=1024.0, help="tile memory bound")
+    p.add_argument("--no-noise-guard", action="store_true",
+                   help="as render-and-denoise --no-noise-guard: one-piece renders, unguarded models")
     p.add_argument("--quiet", action="store_true", help="no progress bar and no table")
     return p
 
@@ -171,7 +177,8 @@ def tradeoff_main(argv: list[str] | None = None) -> int:
                          compare_oidn="oidn" in args.compare, reference=args.reference,
                          reference_spp=args.reference_spp, repeat=args.repeat,
                          resolution=tuple(args.res) if args.res else None, seed=args.seed,
-                         params=dict(args.param), metric=args.metric, max_memory_mb=args.max_memory_mb)
+                         params=dict(args.param), metric=args.metric, max_memory_mb=args.max_memory_mb,
+                         noise_guard=not args.no_noise_guard)
 
     def bar(total: int) -> tqdm:
         return tqdm(total=total, unit="step", disable=args.quiet, dynamic_ncols=True)

@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from pipeline.errors import DenoiserError
+from pipeline.noise_guard import DEFAULT_STRENGTH, guard
 from pipeline.tiling import core_for_budget, run_tiled
 
 WEIGHTS_DIR = Path(__file__).resolve().parents[1] / "model" / "weights"
@@ -54,6 +55,7 @@ class DenoiseResult:
     negative: int
     seconds: float
     tiles: int
+    guard_weight: float | None = None  # noise guard's mean weight of the denoiser (None: no guard)
 
 
 def count_invalid(rgb: np.ndarray) -> tuple[int, int]:
@@ -129,8 +131,14 @@ class Denoiser:
         return core_for_budget(self.bytes_per_pixel(), self.max_memory_mb * 2**20, self.margin)
 
     def denoise_array(self, rgb: np.ndarray, albedo: np.ndarray | None = None,
-                      normals: np.ndarray | None = None) -> DenoiseResult:
-        """Denoise HxWx3 linear radiance (any float dtype) with :func:`model.infer.denoise_image`."""
+                      normals: np.ndarray | None = None, variance: np.ndarray | None = None,
+                      strength: float = DEFAULT_STRENGTH) -> DenoiseResult:
+        """Denoise HxWx3 linear radiance (any float dtype) with :func:`model.infer.denoise_image`.
+
+        ``variance``: HxWx3 variance of ``rgb``'s Monte Carlo estimate (a render made of two
+        halves, :func:`pipeline.render.render_loaded`); given, the output is blended with the
+        render where the render's noise does not explain the change (:mod:`pipeline.noise_guard`).
+        """
         from model.infer import denoise_image
 
         rgb = np.asarray(rgb)
@@ -146,10 +154,18 @@ class Denoiser:
                 if np.shape(buffer) != rgb.shape:
                     raise DenoiserError(f"AOV shape {np.shape(buffer)} differs from image {rgb.shape}")
             aux = np.concatenate([np.asarray(albedo, np.float32), np.asarray(normals, np.float32)], axis=2)
+        if variance is not None and np.shape(variance) != rgb.shape:
+            raise DenoiserError(f"variance shape {np.shape(variance)} differs from image {rgb.shape}")
         count = [0]
         out = denoise_image(self.net, rgb, aux, self.core_size(),
                             progress=lambda n, total: count.__setitem__(0, total))
-        return DenoiseResult(out, nonfinite, negative, time.perf_counter() - start, count[0])
+        weight = None
+        if variance is not None:
+            with np.errstate(invalid="ignore"):
+                clean = np.clip(np.nan_to_num(np.asarray(rgb, np.float32), nan=0.0, posinf=0.0,
+                                              neginf=0.0), 0.0, None)
+            out, weight = guard(clean, out, np.asarray(variance, np.float32), strength=strength)
+        return DenoiseResult(out, nonfinite, negative, time.perf_counter() - start, count[0], weight)
 
     def __call__(self, noisy: Any, albedo: Any = None, normals: Any = None) -> Any:
         """Denoise a numpy array, torch tensor, ``mi.TensorXf`` or ``mi.Bitmap`` (HxWx3, or HxWx4

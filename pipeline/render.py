@@ -29,6 +29,7 @@ class RenderResult:
 
     ``aovs`` maps each requested AOV name to an HxWx3 float32 array. ``nonfinite`` counts the
     pixels that had a NaN/Inf channel (replaced by 0). ``seconds`` is the render's wall time.
+    ``variance`` (renders made of two halves, else None) may hold NaN/Inf where a sample did.
     """
 
     rgb: np.ndarray
@@ -38,6 +39,7 @@ class RenderResult:
     nonfinite: int = 0
     seconds: float = 0.0
     variant: str = ""
+    variance: np.ndarray | None = None  # HxWx3 variance of ``rgb``'s estimate (``halves`` renders)
 
 
 def _one_line(exc: BaseException) -> str:
@@ -134,38 +136,64 @@ def pass_seeds(seed: int, passes: int) -> list[int]:
     return seeds
 
 
-def render_loaded(
-    scene: Any,
-    spp: int,
-    seed: int = 0,
-    aovs: Sequence[str] = (),
-    max_samples_per_pass: int = DEFAULT_MAX_SAMPLES_PER_PASS,
-) -> RenderResult:
-    """Render an already loaded scene (prepared with the same ``aovs``)."""
-    if isinstance(spp, bool) or not isinstance(spp, int) or spp < 1:
-        raise RenderError(f"spp must be a positive integer, got {spp!r}")
-    if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed <= MAX_SEED:
-        raise RenderError(f"seed must be an integer in [0, 2^32), got {seed!r}")
+def _accumulate(scene: Any, spp: int, seed: int, max_samples_per_pass: int) -> np.ndarray:
+    """Mean of ``spp`` samples per pixel in passes of bounded size (independent seeds), float64."""
     import mitsuba as mi
 
     width, height = (int(v) for v in scene.sensors()[0].film().crop_size())
     per_pass = max(1, min(spp, max_samples_per_pass // max(1, width * height)))
     passes = math.ceil(spp / per_pass)
     counts = [per_pass] * (passes - 1) + [spp - per_pass * (passes - 1)]
-    start = time.perf_counter()
     acc: np.ndarray | None = None
     for n, s in zip(counts, pass_seeds(seed, passes)):
         img = np.array(mi.render(scene, spp=n, seed=s), dtype=np.float64) * (n / spp)
         acc = img if acc is None else acc + img
-    seconds = time.perf_counter() - start
     assert acc is not None
+    return acc
+
+
+def render_loaded(
+    scene: Any,
+    spp: int,
+    seed: int = 0,
+    aovs: Sequence[str] = (),
+    max_samples_per_pass: int = DEFAULT_MAX_SAMPLES_PER_PASS,
+    halves: bool = False,
+) -> RenderResult:
+    """Render an already loaded scene (prepared with the same ``aovs``).
+
+    ``halves`` (spp >= 2): render the samples as two independent halves (seeds ``seed`` and a mix
+    of it) and also return ``variance``, the per-pixel variance estimate of the combined mean
+    (:func:`pipeline.noise_guard.half_variance`); the image has the same expectation and spp.
+    """
+    if isinstance(spp, bool) or not isinstance(spp, int) or spp < 1:
+        raise RenderError(f"spp must be a positive integer, got {spp!r}")
+    if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed <= MAX_SEED:
+        raise RenderError(f"seed must be an integer in [0, 2^32), got {seed!r}")
+    import mitsuba as mi
+
+    start = time.perf_counter()
+    variance = None
+    if halves and spp >= 2:
+        from pipeline.noise_guard import half_variance
+
+        n_a = spp // 2
+        seed_b = pass_seeds(seed ^ 0x5A5A5A5A, 2)[1]
+        a = _accumulate(scene, n_a, seed, max_samples_per_pass)
+        b = _accumulate(scene, spp - n_a, seed_b, max_samples_per_pass)
+        acc = a * (n_a / spp) + b * ((spp - n_a) / spp)
+        with np.errstate(invalid="ignore", over="ignore"):
+            variance = half_variance(a[:, :, :3], b[:, :, :3], n_a, spp - n_a)
+    else:
+        acc = _accumulate(scene, spp, seed, max_samples_per_pass)
+    seconds = time.perf_counter() - start
     expected = 3 + 3 * len(aovs)
     if acc.shape[2] != expected:
         raise RenderError(f"render returned {acc.shape[2]} channels, expected {expected}")
     data, nonfinite = sanitize_nonfinite(acc.astype(np.float32))
     out_aovs = {name: data[:, :, 3 + 3 * i: 6 + 3 * i] for i, name in enumerate(aovs)}
     return RenderResult(rgb=np.ascontiguousarray(data[:, :, :3]), aovs=out_aovs, spp=spp, seed=seed,
-                        nonfinite=nonfinite, seconds=seconds, variant=mi.variant())
+                        nonfinite=nonfinite, seconds=seconds, variant=mi.variant(), variance=variance)
 
 
 def render(
@@ -177,15 +205,16 @@ def render(
     params: Mapping[str, Any] | None = None,
     max_samples_per_pass: int = DEFAULT_MAX_SAMPLES_PER_PASS,
     base_dir: str | Path | None = None,
+    halves: bool = False,
 ) -> RenderResult:
     """Load and render a scene file or dict with a box filter and a float32 film.
 
     ``resolution`` is (width, height); ``aovs`` names extra buffers from ``AOV_TYPES`` (rendered
     only when asked for); ``params`` fills an XML scene's ``$name`` parameters; ``base_dir``
-    resolves a dict scene's relative asset paths.
+    resolves a dict scene's relative asset paths; ``halves``: see :func:`render_loaded`.
     """
     loaded = load_scene(prepare(scene, resolution, aovs, params, base_dir))
-    return render_loaded(loaded, spp, seed, aovs, max_samples_per_pass)
+    return render_loaded(loaded, spp, seed, aovs, max_samples_per_pass, halves)
 
 
 __all__ = ["AOV_TYPES", "RenderResult", "load_scene", "prepare", "render", "render_loaded"]

@@ -23,6 +23,7 @@ from pipeline.denoise import Denoiser
 from pipeline.errors import DenoiserError
 from pipeline.exr import read_exr, write_exr
 from pipeline.metrics import all_metrics
+from pipeline.noise_guard import DEFAULT_PIVOT_SPP, DEFAULT_RADIUS, strength_for
 from pipeline.oidn import oidn_denoise
 from pipeline.render import load_scene, pass_seeds, prepare, render_loaded
 from pipeline.report import comparison_image, write_previews, write_report
@@ -46,6 +47,7 @@ class RunConfig:
     max_memory_mb: float = 1024.0
     time_budget: float | None = None  # seconds: spp (and, with model "auto", the model) chosen to fit
     curves: str | None = None  # tradeoff.json guiding the model choice under a time budget
+    noise_guard: bool = True  # render in two halves, blend by pipeline.noise_guard (off: one render)
 
 
 def _json_safe(value: Any) -> Any:
@@ -102,15 +104,17 @@ def run(cfg: RunConfig, log: Callable[[str], None] = lambda s: None) -> dict[str
     t_load = time.perf_counter() - t0
     spp, plan = cfg.spp, None
     if candidates:
-        plan = plan_run(cfg.time_budget, t_start, scene, cfg.seed, aovs, candidates, cfg.curves, log)
+        plan = plan_run(cfg.time_budget, t_start, scene, cfg.seed, aovs, candidates, cfg.curves, log,
+                        halves=cfg.noise_guard)
         denoiser, spp = candidates[plan.model], plan.spp
     log(f"rendering {spp} spp")
-    noisy = render_loaded(scene, spp, cfg.seed, aovs)
+    noisy = render_loaded(scene, spp, cfg.seed, aovs, halves=cfg.noise_guard)
     if reference is not None and reference.shape != noisy.rgb.shape:
         raise DenoiserError(f"{cfg.reference}: reference is {reference.shape[1]}x{reference.shape[0]}"
                             f", render is {noisy.rgb.shape[1]}x{noisy.rgb.shape[0]}")
     log(f"denoising with {denoiser.name}")
-    result = denoiser.denoise_array(noisy.rgb, noisy.aovs.get("albedo"), noisy.aovs.get("sh_normal"))
+    result = denoiser.denoise_array(noisy.rgb, noisy.aovs.get("albedo"), noisy.aovs.get("sh_normal"),
+                                    noisy.variance, strength_for(spp))
     if plan:
         plan.actual_s = time.perf_counter() - t_start
     images = {"noisy": noisy.rgb, "denoised": result.image}
@@ -142,6 +146,9 @@ def run(cfg: RunConfig, log: Callable[[str], None] = lambda s: None) -> dict[str
         "sanitized": {"render_nonfinite_pixels": noisy.nonfinite, "denoiser_nonfinite_values":
                       result.nonfinite, "denoiser_negative_values": result.negative},
     }
+    metrics["noise_guard"] = ({"radius": DEFAULT_RADIUS, "pivot_spp": DEFAULT_PIVOT_SPP,
+                               "strength": strength_for(spp), "mean_weight": result.guard_weight}
+                              if result.guard_weight is not None else None)
     if plan:
         metrics["budget"] = plan.to_dict()
     if reference is not None:
@@ -163,6 +170,10 @@ def summary_lines(metrics: dict[str, Any]) -> list[str]:
     lines = [f"{metrics['scene']}: {metrics['resolution'][0]}x{metrics['resolution'][1]} at "
              f"{metrics['spp']} spp, model {metrics['model']['name']} ({metrics['variant']})",
              "timings: " + ", ".join(f"{k[:-2]} {v:.2f}s" for k, v in t.items())]
+    guarded = metrics.get("noise_guard")
+    if guarded:
+        lines.append(f"noise guard: mean weight of the denoiser's output {guarded['mean_weight']:.3f} "
+                     "(1: unchanged)")
     budget = metrics.get("budget")
     if budget:
         lines.append(f"time budget {budget['budget_s']:g} s: chose {budget['model']} at {budget['spp']} spp "

@@ -26,6 +26,7 @@ from pipeline.denoise import Denoiser, file_sha256, resolve_model
 from pipeline.errors import DenoiserError
 from pipeline.exr import read_exr
 from pipeline.metrics import flip, psnr, relmse
+from pipeline.noise_guard import strength_for
 from pipeline.oidn import oidn_denoise
 from pipeline.pareto import ERROR_OF_METRIC, equal_quality, metric_error, pareto_front
 from pipeline.render import RenderResult, load_scene, pass_seeds, prepare, render_loaded
@@ -64,6 +65,7 @@ class TradeoffConfig:
     params: dict[str, str] = field(default_factory=dict)
     metric: str = "relmse"
     max_memory_mb: float = 1024.0
+    noise_guard: bool = True  # as render-and-denoise: renders in two halves, our models guarded
 
     def check(self) -> None:
         """Raise :class:`DenoiserError` for settings that cannot give a measurement."""
@@ -138,7 +140,8 @@ def _denoise_fns(denoisers: dict[str, Denoiser], oidn: bool
                  ) -> dict[str, Callable[[RenderResult], tuple[np.ndarray, float]]]:
     def ours(den: Denoiser) -> Callable[[RenderResult], tuple[np.ndarray, float]]:
         def run(r: RenderResult) -> tuple[np.ndarray, float]:
-            res = den.denoise_array(r.rgb, r.aovs.get("albedo"), r.aovs.get("sh_normal"))
+            res = den.denoise_array(r.rgb, r.aovs.get("albedo"), r.aovs.get("sh_normal"), r.variance,
+                                    strength_for(r.spp))
             return res.image, res.seconds
         return run
 
@@ -183,7 +186,8 @@ def measure(cfg: TradeoffConfig, progress: Callable[[int], ProgressBar] | None =
     for spp in spps:
         if bar:
             bar.set_description(f"{spp} spp: render")
-        renders = [render_loaded(scene, spp, cfg.seed, aovs) for _ in range(cfg.repeat)]
+        renders = [render_loaded(scene, spp, cfg.seed, aovs, halves=cfg.noise_guard)
+                   for _ in range(cfg.repeat)]
         noisy = renders[-1]
         if reference.shape != noisy.rgb.shape:
             raise DenoiserError(f"{cfg.reference}: reference is {reference.shape[1]}x{reference.shape[0]}"

@@ -61,6 +61,19 @@ def test_reference_file_and_no_reference(tmp_path: Path, demo_run: Path, ckpt: P
     assert set(metrics["stats"]) == {"noisy", "denoised"}
 
 
+def test_noise_guard_on_by_default_and_off_on_request(tmp_path: Path, demo_run: Path, ckpt: Path) -> None:
+    guarded = json.loads((demo_run / "metrics.json").read_text())["noise_guard"]
+    assert 0.0 <= guarded["mean_weight"] <= 1.0 and guarded["strength"] >= 1.0
+    out = tmp_path / "plain"
+    assert main([str(DEMO), "--spp", "4", "--res", "32", "24", "--model", str(ckpt), "--quiet",
+                 "--no-noise-guard", "--out", str(out)]) == 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["noise_guard"] is None
+    assert json.loads((out / "config.json").read_text())["noise_guard"] is False
+    # Unguarded, one-piece render: another noise realisation than the guarded two-halves render.
+    assert not np.array_equal(read_exr(out / "noisy.exr").rgb, read_exr(demo_run / "noisy.exr").rgb)
+
+
 def test_denoise_command(tmp_path: Path, demo_run: Path, ckpt: Path, capsys: pytest.CaptureFixture) -> None:
     half = tmp_path / "noisy16.exr"
     write_exr(half, read_exr(demo_run / "noisy.exr").rgb, half=True)

@@ -1,0 +1,201 @@
+"""What the noise guard (pipeline/noise_guard.py) costs where renders are noisy and buys where they
+have converged; the measurement behind its default window and strength.
+
+Every render is made of two independent halves (``render_loaded(..., halves=True)``), so each
+image comes with its variance estimate; the model denoises it once and the guard is applied with
+each (window radius, pivot spp) setting to that one output. Two regimes:
+
+* ``noisy``: every scene of ../shared/eval-scenes at its reference resolution, spp 4, 16, 128
+  (seed 7), against its stored 2048-spp reference.exr.
+* ``converged``: the demo scene at 24 and 64 px and every eval scene at 48 px wide, spp 256, 1024
+  and 4096, against a 16384-spp reference rendered here (another seed): the case where a denoiser must
+  not make the image worse.
+
+PSNR is tonemapped as in ../shared/eval-scenes/README.md. OIDN colour-only denoises the same
+renders. Means are over the scenes whose reference ceiling is >= 40 dB (``noisy``) and over all
+scenes (``converged``: the 16384-spp reference is far cleaner than any input here).
+
+    .venv/bin/python benchmarks/noise_guard.py [--settings 1:0,1:256,2:256] [--scenes a,b]
+        [--model M] [--quick]
+
+Writes benchmarks/results/noise_guard.json and noise_guard.md (``--report-only``: rewrites the
+tables from the recorded JSON, e.g. after the default setting changed among the measured ones).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from pipeline.atomic_io import write_text_atomic  # noqa: E402
+from pipeline.denoise import Denoiser  # noqa: E402
+from pipeline.exr import read_exr  # noqa: E402
+from pipeline.metrics import psnr  # noqa: E402
+from pipeline.noise_guard import DEFAULT_PIVOT_SPP, DEFAULT_RADIUS, guard, strength_for  # noqa: E402
+from pipeline.oidn import oidn_denoise  # noqa: E402
+from pipeline.render import load_scene, prepare, render_loaded  # noqa: E402
+
+EVAL_DIR = ROOT.parent / "shared" / "eval-scenes"
+DEMO = ROOT / "scenes" / "examples" / "demo.xml"
+RESULTS = Path(__file__).resolve().parent / "results"
+SEED, REF_SEED = 7, 1_000_003
+CEILING_DB = 40.0
+
+
+Setting = tuple[int, float]  # (window radius, pivot spp: strength max(1, pivot/spp))
+
+
+def label(setting: Setting) -> str:
+    return f"guard r{setting[0]} p{setting[1]:g}"
+
+
+def score_render(scene: Any, spp: int, ref: np.ndarray, denoiser: Denoiser,
+                 settings: list[Setting]) -> dict[str, float]:
+    """PSNR of the noisy render, the model, the model with each guard setting, and OIDN."""
+    noisy = render_loaded(scene, spp, SEED, halves=True)
+    out = denoiser.denoise_array(noisy.rgb).image
+    row = {"noisy": psnr(noisy.rgb, ref), "model": psnr(out, ref)}
+    for setting in settings:
+        guarded, weight = guard(noisy.rgb, out, noisy.variance, setting[0], strength_for(spp, setting[1]))
+        row[label(setting)] = psnr(guarded, ref)
+        row[f"weight {label(setting)}"] = weight
+    row["oidn"] = psnr(oidn_denoise(noisy.rgb)[0], ref)
+    return row
+
+
+def eval_scenes(names: list[str] | None) -> list[Path]:
+    folders = sorted(p.parent for p in EVAL_DIR.glob("*/scene.xml"))
+    return [f for f in folders if names is None or f.name in names]
+
+
+def noisy_regime(folders: list[Path], spps: list[int], denoiser: Denoiser,
+                 settings: list[Setting]) -> dict[str, Any]:
+    rows: dict[str, Any] = {}
+    for folder in tqdm(folders, desc="noisy regime", unit="scene"):
+        info = json.loads((folder / "reference.json").read_text())
+        ref = read_exr(folder / "reference.exr").rgb
+        scene = load_scene(prepare(folder / "scene.xml", (ref.shape[1], ref.shape[0])))
+        rows[folder.name] = {"ceiling_db": info["reference_psnr_ceiling_db"],
+                             **{str(s): score_render(scene, s, ref, denoiser, settings) for s in spps}}
+    return rows
+
+
+def converged_regime(cases: list[tuple[str, Path, tuple[int, int]]], spps: list[int], ref_spp: int,
+                     denoiser: Denoiser, settings: list[Setting]) -> dict[str, Any]:
+    rows: dict[str, Any] = {}
+    for name, xml, res in tqdm(cases, desc="converged regime", unit="scene"):
+        scene = load_scene(prepare(xml, res))
+        ref = render_loaded(scene, ref_spp, REF_SEED).rgb
+        rows[name] = {str(s): score_render(scene, s, ref, denoiser, settings) for s in spps}
+    return rows
+
+
+def converged_cases(folders: list[Path], width: int) -> list[tuple[str, Path, tuple[int, int]]]:
+    cases = [("demo@24", DEMO, (24, 24)), ("demo@64", DEMO, (64, 64))]
+    for folder in folders:
+        h, w = read_exr(folder / "reference.exr").rgb.shape[:2]
+        cases.append((f"{folder.name}@{width}", folder / "scene.xml", (width, max(1, round(width * h / w)))))
+    return cases
+
+
+def summarize(rows: dict[str, Any], spps: list[int], names: list[str]) -> dict[str, Any]:
+    """Per spp: mean PSNR of each method, and the worst (most negative) change against noisy."""
+    out: dict[str, Any] = {"scenes": len(names)}
+    for spp in spps:
+        methods = [k for k in rows[names[0]][str(spp)] if not k.startswith("weight")]
+        entry = {}
+        for m in methods:
+            values = [rows[n][str(spp)][m] for n in names]
+            diffs = [rows[n][str(spp)][m] - rows[n][str(spp)]["noisy"] for n in names]
+            entry[m] = {"mean_psnr": float(np.mean(values)), "worst_vs_noisy_db": float(min(diffs))}
+        out[str(spp)] = entry
+    return out
+
+
+def markdown(summary: dict[str, Any], spps: list[int], title: str) -> list[str]:
+    methods = list(summary[str(spps[0])])
+    lines = [f"**{title}** ({summary['scenes']} scenes): mean PSNR dB (worst change vs noisy)", "",
+             "| spp | " + " | ".join(methods) + " |", "|---:|" + "---:|" * len(methods)]
+    for spp in spps:
+        e = summary[str(spp)]
+        lines.append(f"| {spp} | " + " | ".join(
+            f"{e[m]['mean_psnr']:.2f} ({e[m]['worst_vs_noisy_db']:+.2f})" for m in methods) + " |")
+    return lines + [""]
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--settings", default="1:0,1:64,1:256,1:1024,2:0,2:256",
+                   help="comma-separated RADIUS:PIVOT_SPP guard settings")
+    p.add_argument("--scenes", help="comma-separated eval scene names (default: all)")
+    p.add_argument("--model", default=None, help="checkpoint or preset (default: the shipped default)")
+    p.add_argument("--width", type=int, default=48, help="eval scenes' width in the converged regime")
+    p.add_argument("--quick", action="store_true", help="3 scenes, fewer spp (a smoke run)")
+    p.add_argument("--report-only", action="store_true",
+                   help="no measurement: rewrite the tables of results/noise_guard.json for the "
+                   "current default setting")
+    args = p.parse_args()
+    settings = [(int(r), float(st)) for r, st in (x.split(":") for x in args.settings.split(","))]
+    default = label((DEFAULT_RADIUS, DEFAULT_PIVOT_SPP))
+    names = args.scenes.split(",") if args.scenes else None
+    if args.quick and names is None:
+        names = ["bitterli_cornell_box", "matpreview_plastic", "bitterli_veach_mis"]
+    folders = eval_scenes(names)
+    noisy_spps, conv_spps, ref_spp = (([4, 16], [1024], 4096) if args.quick
+                                      else ([4, 16, 128], [256, 1024, 4096], 16384))
+    if args.report_only:
+        result = json.loads((RESULTS / "noise_guard.json").read_text())
+        result["default"] = default
+    else:
+        denoiser = Denoiser(args.model)
+        start = time.perf_counter()
+        noisy_rows = noisy_regime(folders, noisy_spps, denoiser, settings)
+        conv_rows = converged_regime(converged_cases(folders, args.width), conv_spps, ref_spp, denoiser,
+                                     settings)
+        scored = [n for n, r in noisy_rows.items() if r["ceiling_db"] >= CEILING_DB]
+        summary = {"noisy": summarize(noisy_rows, noisy_spps, scored),
+                   "converged": summarize(conv_rows, conv_spps, list(conv_rows))}
+        result = {"model": denoiser.name, "settings": settings, "default": default, "seed": SEED,
+                  "noisy_spp": noisy_spps, "converged_spp": conv_spps, "reference_spp_converged": ref_spp,
+                  "seconds": time.perf_counter() - start, "summary": summary, "noisy": noisy_rows,
+                  "converged": conv_rows}
+    text = report(result)
+    print(text)
+    if not args.quick:
+        RESULTS.mkdir(exist_ok=True)
+        write_text_atomic(RESULTS / "noise_guard.json", json.dumps(result, indent=1) + "\n")
+        write_text_atomic(RESULTS / "noise_guard.md", text)
+    return 0
+
+
+def report(result: dict[str, Any]) -> str:
+    """The markdown tables of a result: means per regime, then every converged case."""
+    default, summary = result["default"], result["summary"]
+    noisy_spps = result.get("noisy_spp", [4, 16, 128])
+    conv_spps = result.get("converged_spp", [256, 1024, 4096])
+    lines = [f"Noise guard, model `{result['model']}`; default setting: {default}.", ""]
+    lines += markdown(summary["noisy"], noisy_spps, f"noisy regime: eval scenes, ceiling >= {CEILING_DB:g} dB")
+    lines += markdown(summary["converged"], conv_spps,
+                      f"converged regime: {result['reference_spp_converged']}-spp references")
+    lines.append(f"| converged case | spp | noisy | model | {default} | oidn |")
+    lines.append("|---|---:|---:|---:|---:|---:|")
+    for name, row in result["converged"].items():
+        for spp in conv_spps:
+            e = row[str(spp)]
+            lines.append(f"| {name} | {spp} | {e['noisy']:.2f} | {e['model']:.2f} | "
+                         f"{e.get(default, math.nan):.2f} | {e['oidn']:.2f} |")
+    return "\n".join(lines) + "\n"
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
