@@ -11,11 +11,12 @@ The guard blends the render and the denoiser's output by how much of the denoise
 render's noise explains. Model the render as truth + noise of variance V and the denoiser's output
 as truth + an error of variance T independent of it: the change ``c = denoised - noisy`` then has
 mean square ``D = V + T`` and the blend ``noisy + w*c`` with ``w = V / (V + T) = min(1, V/D)`` has
-error variance ``V*T/(V+T)``, never above either input's. V and D are window means (the same
-window for both), summed over the channels, so one weight applies to a pixel's RGB. Where a
-render is noisy, a good denoiser's change is the noise (``D ~ V``, w = 1: its output passes
-unchanged); where a render has converged (V -> 0) whatever the denoiser changed is its own error
-and the render is kept. ``strength`` s scales V (``w = min(1, s*V/D)``);
+error variance ``V*T/(V+T)``, never above either input's (with V and D exact; their window
+estimates scatter, so where the denoiser is good a little noise comes back). V and D are window
+means (the same window for both), summed over the channels, so one weight applies to a pixel's
+RGB. Where a render is noisy, a good denoiser's change is the noise (``D ~ V``, w = 1: its
+output passes unchanged); where a render has converged (V -> 0) whatever the denoiser changed is
+its own error and the render is kept. ``strength`` s scales V (``w = min(1, s*V/D)``);
 ``benchmarks/noise_guard.py`` measures the window and s used by default.
 """
 from __future__ import annotations
@@ -53,14 +54,14 @@ def box_mean(img: np.ndarray, radius: int) -> np.ndarray:
     """Mean over a (2r+1)^2 window per channel of an HxWxC image, the window cut at the borders."""
     if radius < 0:
         raise ValueError(f"radius must be >= 0, got {radius}")
+    count = np.ones(img.shape[:2])
+    for axis in (0, 1):
+        count = _box_sum_1d(count, radius, axis)
     out = np.empty(img.shape, np.float32)
     for c in range(img.shape[2]):
         plane = np.asarray(img[:, :, c], np.float64)
         for axis in (0, 1):
             plane = _box_sum_1d(plane, radius, axis)
-        count = np.ones(img.shape[:2])
-        for axis in (0, 1):
-            count = _box_sum_1d(count, radius, axis)
         out[:, :, c] = plane / count
     return out
 
