@@ -37,7 +37,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from pipeline.denoise import DEFAULT_WEIGHTS, Denoiser, file_sha256  # noqa: E402
 from pipeline.metrics import psnr  # noqa: E402
-from pipeline.noise_guard import strength_for  # noqa: E402
 from pipeline.render import render  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -47,6 +46,7 @@ EVAL = ROOT.parent / "shared" / "eval-scenes"
 EVAL_SCENES = ("cbox_spectral", "matpreview_plastic", "bitterli_veach_mis")
 EXPOSURES = (1e-4, 1e3)
 CONSTANTS = (0.01, 0.18, 1.0, 100.0)
+PARTS = ("energy", "converged", "memory")
 
 
 def _scene(name: str, res: tuple[int, int]) -> tuple[Path, dict[str, str], tuple[int, int] | None]:
@@ -88,7 +88,7 @@ def converged(den: Denoiser, sizes: tuple[int, ...]) -> dict[str, Any]:
         noisy = render(DEMO, 4096, seed=1, resolution=(size, size), halves=True)
         reference = render(DEMO, 16384, seed=2, resolution=(size, size)).rgb
         out = den.denoise_array(noisy.rgb).image
-        guarded = den.denoise_array(noisy.rgb, variance=noisy.variance, strength=strength_for(4096)).image
+        guarded = den.denoise_render(noisy).image
         rows[str(size)] = {"psnr_noisy_db": psnr(noisy.rgb, reference), "psnr_denoised_db": psnr(out, reference),
                            "psnr_guarded_db": psnr(guarded, reference),
                            "mean_ratio": float(out.mean() / noisy.rgb.mean()),
@@ -157,11 +157,11 @@ def main() -> None:
     p.add_argument("--quick", action="store_true", help="demo only, small images, 960x540 memory run")
     p.add_argument("--size", help="memory run image WxH (default 7680x4320, --quick 960x540)")
     p.add_argument("--max-memory-mb", type=float, default=1024.0)
-    p.add_argument("--parts", default="energy,converged,memory",
+    p.add_argument("--parts", default=",".join(PARTS),
                    help="comma-separated parts to measure (the others keep their recorded figures)")
     args = p.parse_args()
     parts = set(args.parts.split(","))
-    if not parts <= {"energy", "converged", "memory"}:
+    if not parts <= set(PARTS):
         raise SystemExit(f"extremes: unknown part in --parts {args.parts!r}")
     model = args.model or str(DEFAULT_WEIGHTS)
     if not Path(model).exists():
@@ -171,7 +171,7 @@ def main() -> None:
     mode = "quick" if args.quick else "full"
     names = ["demo"] + ([] if args.quick else [n for n in EVAL_SCENES if (EVAL / n).is_dir()])
     previous = json.loads(RESULTS.read_text()) if RESULTS.exists() else {}
-    result = {k: v for k, v in previous.get(mode, {}).items() if k in ("energy", "converged", "memory")}
+    result = {k: v for k, v in previous.get(mode, {}).items() if k in PARTS}
     result.update({
         "mode": mode, "model": Path(model).name, "model_sha256": file_sha256(Path(model)),
         "machine": f"{platform.machine()}, {os.cpu_count()} cores (load {os.getloadavg()[0]:.1f} at start)",
@@ -182,7 +182,7 @@ def main() -> None:
         result["converged"] = converged(den, (24,) if args.quick else (24, 64))
     if "memory" in parts:
         result["memory"] = memory(model, width, height, args.max_memory_mb)
-    if not {"energy", "converged", "memory"} <= set(result):
+    if not set(PARTS) <= set(result):
         raise SystemExit("extremes: no recorded figures for the parts not measured; run all parts once")
     print("\n".join(_table(result)))
     previous[mode] = result

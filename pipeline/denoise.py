@@ -11,13 +11,16 @@ import hashlib
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from pipeline.errors import DenoiserError
-from pipeline.noise_guard import DEFAULT_STRENGTH, guard
+from pipeline.noise_guard import DEFAULT_STRENGTH, guard, strength_for
 from pipeline.tiling import core_for_budget, run_tiled
+
+if TYPE_CHECKING:
+    from pipeline.render import RenderResult
 
 WEIGHTS_DIR = Path(__file__).resolve().parents[1] / "model" / "weights"
 DEFAULT_WEIGHTS = WEIGHTS_DIR / "default.ckpt"
@@ -166,6 +169,12 @@ class Denoiser:
                                               neginf=0.0), 0.0, None)
             out, weight = guard(clean, out, np.asarray(variance, np.float32), strength=strength)
         return DenoiseResult(out, nonfinite, negative, time.perf_counter() - start, count[0], weight)
+
+    def denoise_render(self, render: RenderResult) -> DenoiseResult:
+        """Denoise a render of :mod:`pipeline.render` with what it carries: its AOVs and, for a
+        render made in two halves, its variance with the noise guard's strength for its spp."""
+        return self.denoise_array(render.rgb, render.aovs.get("albedo"), render.aovs.get("sh_normal"),
+                                  render.variance, strength_for(render.spp))
 
     def __call__(self, noisy: Any, albedo: Any = None, normals: Any = None) -> Any:
         """Denoise a numpy array, torch tensor, ``mi.TensorXf`` or ``mi.Bitmap`` (HxWx3, or HxWx4

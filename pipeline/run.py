@@ -113,8 +113,7 @@ def run(cfg: RunConfig, log: Callable[[str], None] = lambda s: None) -> dict[str
         raise DenoiserError(f"{cfg.reference}: reference is {reference.shape[1]}x{reference.shape[0]}"
                             f", render is {noisy.rgb.shape[1]}x{noisy.rgb.shape[0]}")
     log(f"denoising with {denoiser.name}")
-    result = denoiser.denoise_array(noisy.rgb, noisy.aovs.get("albedo"), noisy.aovs.get("sh_normal"),
-                                    noisy.variance, strength_for(spp))
+    result = denoiser.denoise_render(noisy)
     if plan:
         plan.actual_s = time.perf_counter() - t_start
     images = {"noisy": noisy.rgb, "denoised": result.image}

@@ -26,7 +26,6 @@ from pipeline.denoise import Denoiser, file_sha256, resolve_model
 from pipeline.errors import DenoiserError
 from pipeline.exr import read_exr
 from pipeline.metrics import flip, psnr, relmse
-from pipeline.noise_guard import strength_for
 from pipeline.oidn import oidn_denoise
 from pipeline.pareto import ERROR_OF_METRIC, equal_quality, metric_error, pareto_front
 from pipeline.render import RenderResult, load_scene, pass_seeds, prepare, render_loaded
@@ -140,8 +139,7 @@ def _denoise_fns(denoisers: dict[str, Denoiser], oidn: bool
                  ) -> dict[str, Callable[[RenderResult], tuple[np.ndarray, float]]]:
     def ours(den: Denoiser) -> Callable[[RenderResult], tuple[np.ndarray, float]]:
         def run(r: RenderResult) -> tuple[np.ndarray, float]:
-            res = den.denoise_array(r.rgb, r.aovs.get("albedo"), r.aovs.get("sh_normal"), r.variance,
-                                    strength_for(r.spp))
+            res = den.denoise_render(r)
             return res.image, res.seconds
         return run
 

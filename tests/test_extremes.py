@@ -37,7 +37,6 @@ from pipeline.cli import denoise_main
 from pipeline.denoise import DEFAULT_WEIGHTS, Denoiser
 from pipeline.exr import read_exr, write_exr
 from pipeline.metrics import psnr
-from pipeline.noise_guard import strength_for
 from pipeline.render import render
 
 TINY = ModelConfig(layers=3, growth=4, init_features=8)
@@ -396,7 +395,6 @@ def test_shipped_does_not_blur_a_converged_image(shipped_denoiser: Denoiser) -> 
     model alone lowers this 24-px 4096-spp render of the demo by about 10 dB: benchmarks/noise_guard.py.)"""
     noisy = render(DEMO, 4096, seed=1, resolution=(24, 24), halves=True)
     reference = render(DEMO, 16384, seed=2, resolution=(24, 24)).rgb
-    out = shipped_denoiser.denoise_array(noisy.rgb, variance=noisy.variance,
-                                         strength=strength_for(4096)).image
+    out = shipped_denoiser.denoise_render(noisy).image
     before, after = psnr(noisy.rgb, reference), psnr(out, reference)
     assert after >= before - PSNR_DROP_DB, f"PSNR {before:.2f} dB noisy -> {after:.2f} dB denoised"
