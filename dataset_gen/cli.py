@@ -60,6 +60,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--val-fraction", type=float, default=0.1, help="share of scenes in split 'val'")
     p.add_argument("--aovs", type=lambda s: tuple(a for a in s.split(",") if a), default=(),
                    help="also write noisy albedo/normal buffers: alb,nrm")
+    p.add_argument("--variance", action="store_true",
+                   help="render each noisy image (>= 2 spp) in two halves and write its variance estimate")
     p.add_argument("--workers", type=int, default=1,
                    help="parallel scene jobs (1 = Mitsuba uses all cores per render; measured fastest)")
     p.add_argument("--scheduler", type=_scheduler, default=None,
@@ -86,7 +88,8 @@ def main(argv: list[str] | None = None) -> int:
               "do the work)", file=sys.stderr)
         return 2
     cfg = DatasetConfig(res=args.res, spp=args.spp, ref_spp=args.ref_spp, families=args.families,
-                        seed=args.seed, aovs=args.aovs, val_fraction=args.val_fraction)
+                        seed=args.seed, aovs=args.aovs, val_fraction=args.val_fraction,
+                        variance=args.variance)
     out = Path(args.out)
 
     def bar(total: int) -> tqdm:

@@ -25,7 +25,9 @@ class DatasetError(DenoiserError):
 class DatasetConfig:
     """Render settings of a dataset. ``res`` is [width, height] in pixels; ``spp`` the noisy
     sample counts; ``ref_spp`` the reference's (rendered as two halves); ``aovs`` extra buffers
-    rendered with each noisy image ("alb", "nrm"); ``val_fraction`` of scenes go to split "val"."""
+    rendered with each noisy image ("alb", "nrm"); ``val_fraction`` of scenes go to split "val";
+    ``variance``: each noisy image of >= 2 spp is rendered as two halves of independent samples and
+    its per-pixel variance estimate written beside it (kind ``var``), as ``render-and-denoise`` does."""
 
     res: tuple[int, int] = (128, 128)
     spp: tuple[int, ...] = (4, 16, 64, 128)
@@ -35,6 +37,7 @@ class DatasetConfig:
     aovs: tuple[str, ...] = ()
     val_fraction: float = 0.1
     filter: str = "box"
+    variance: bool = False
     version: int = FORMAT_VERSION
     mitsuba: str = ""
     variant: str = ""

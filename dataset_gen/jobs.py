@@ -65,8 +65,13 @@ def reference_noise(half_a: np.ndarray, half_b: np.ndarray) -> dict[str, float]:
     }
 
 
-def _render(scene: Any, spp: int, seed: int, aovs: tuple[str, ...]) -> Any:
-    return render_loaded(scene, spp, seed, aovs=aovs)
+def _render(scene: Any, spp: int, seed: int, aovs: tuple[str, ...], halves: bool = False) -> Any:
+    return render_loaded(scene, spp, seed, aovs=aovs, halves=halves)
+
+
+def finite_variance(variance: np.ndarray) -> np.ndarray:
+    """A render's variance estimate as stored: NaN (a NaN sample) -> 0, +Inf -> float32 max."""
+    return np.nan_to_num(variance, nan=0.0, posinf=np.finfo(np.float32).max, neginf=0.0).astype(np.float32)
 
 
 def run_job(cfg: DatasetConfig, index: int, folder: Path) -> dict[str, Any]:
@@ -88,15 +93,20 @@ def run_job(cfg: DatasetConfig, index: int, folder: Path) -> dict[str, Any]:
                  "variant": cfg.variant, "filter": cfg.filter}
     timings: dict[str, float] = {"generate_s": t_gen}
     nonfinite: dict[str, int] = {}
+    variance_spp: list[int] = []
     images = folder / IMAGES_DIR
     with_aovs = load_scene(prepare(xml, tuple(cfg.res), render_aovs)) if render_aovs else None
     plain = load_scene(prepare(xml, tuple(cfg.res)))
     timings["load_s"] = time.perf_counter() - t0 - t_gen
 
     for spp in cfg.spp:
-        res = _render(with_aovs or plain, spp, seeds.noisy[spp], render_aovs)
+        res = _render(with_aovs or plain, spp, seeds.noisy[spp], render_aovs, halves=cfg.variance)
         meta = {**meta_base, "spp": spp, "seed": seeds.noisy[spp]}
         write_exr(images / image_name(index, spp, "hdr"), res.rgb, metadata=meta)
+        if res.variance is not None:
+            write_exr(images / image_name(index, spp, "var"), finite_variance(res.variance),
+                      metadata={**meta, "layer": "variance of the mean (two halves)"})
+            variance_spp.append(spp)
         for kind, render_name in zip(cfg.aovs, render_aovs):
             write_exr(images / image_name(index, spp, kind), res.aovs[render_name],
                       layers=None, metadata={**meta, "layer": _AOV_LAYER_NAMES[kind]})
@@ -116,6 +126,7 @@ def run_job(cfg: DatasetConfig, index: int, folder: Path) -> dict[str, Any]:
         "index": index, "scene": scene_name(index), "family": seeds.family,
         "seed": seeds.scene_seed, "split": seeds.split, "spp": list(cfg.spp),
         "ref_spp": cfg.ref_spp, "aovs": list(cfg.aovs), "res": list(cfg.res),
+        "variance_spp": variance_spp,
         "ref_noise": noise, "timings": timings, "nonfinite": nonfinite,
         "mitsuba": cfg.mitsuba, "variant": cfg.variant, "filter": cfg.filter,
         "samples": int(cfg.res[0] * cfg.res[1] * (sum(cfg.spp) + cfg.ref_spp)),

@@ -2,7 +2,8 @@
 
 Images: ``scene{NNNN}_{SSSS}spp.{kind}.exr`` for a noisy render at SSSS samples per pixel and
 ``scene{NNNN}_ref.{kind}.exr`` for the reference, where kind is ``hdr`` (RGB radiance), ``alb``
-(albedo) or ``nrm`` (shading normal). Example: ``scene0042_0128spp.hdr.exr``,
+(albedo), ``nrm`` (shading normal) or ``var`` (per-pixel variance of the noisy image's mean,
+estimated from two halves of its samples). Example: ``scene0042_0128spp.hdr.exr``,
 ``scene0042_ref.hdr.exr``. Scene folders are ``scene{NNNN}``.
 """
 from __future__ import annotations
@@ -10,8 +11,8 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass
 
-KINDS = ("hdr", "alb", "nrm")
-_NAME_RE = re.compile(r"^scene(?P<index>\d{4,})_(?:(?P<spp>\d{4,})spp|ref)\.(?P<kind>hdr|alb|nrm)\.exr$")
+KINDS = ("hdr", "alb", "nrm", "var")
+_NAME_RE = re.compile(r"^scene(?P<index>\d{4,})_(?:(?P<spp>\d{4,})spp|ref)\.(?P<kind>hdr|alb|nrm|var)\.exr$")
 
 
 @dataclass(frozen=True)

@@ -155,3 +155,32 @@ def test_cli_writes_dataset_and_preview(tmp_path: Path, capsys) -> None:
     assert cli_main(["--scenes", "2", "--out", str(tmp_path), "--preview", *TINY_ARGS]) == 0
     out = capsys.readouterr().out
     assert "2 scenes rendered" in out and (tmp_path / "preview.png").stat().st_size > 0
+
+
+def test_variance_files_estimate_the_noise_of_each_noisy_image(tmp_path: Path) -> None:
+    """--variance: every noisy image of >= 2 spp gets its two-halves variance estimate (none at
+    1 spp); over many pixels it matches the squared error against a high-spp reference."""
+    cfg = DatasetConfig(res=(32, 32), spp=(1, 4, 16), ref_spp=256, families=("cornell_box",), seed=2,
+                        val_fraction=0.0, variance=True)
+    summary = generate_dataset(tmp_path, cfg, 1)
+    assert summary.done == 1 and not summary.failed
+    record = read_records(tmp_path)[0]
+    assert record["variance_spp"] == [4, 16]
+    images = tmp_path / "images"
+    assert not (images / image_name(0, 1, "var")).exists()
+    ref = read_exr(images / image_name(0, None)).rgb
+    for spp in (4, 16):
+        var = read_exr(images / image_name(0, spp, "var")).rgb
+        noisy = read_exr(images / image_name(0, spp)).rgb
+        assert var.shape == noisy.shape and np.isfinite(var).all() and (var >= 0).all()
+        estimated, actual = float(var.mean()), float(((noisy - ref) ** 2).mean())
+        assert 0.3 * actual < estimated < 3.0 * actual  # one degree of freedom per pixel, 3072 values
+    with pytest.raises(DatasetError, match="variance"):
+        generate_dataset(tmp_path, DatasetConfig(**{**cfg.to_json(), "variance": False, "families": ("cornell_box",)}), 1)
+
+
+def test_variance_flag_reaches_the_config(tmp_path: Path) -> None:
+    assert cli_main([*TINY_ARGS, "--scenes", "1", "--out", str(tmp_path / "d"), "--variance"]) == 0
+    saved = json.loads((tmp_path / "d" / "dataset.json").read_text())
+    assert saved["variance"] is True
+    assert (tmp_path / "d" / "images" / image_name(0, 2, "var")).exists()
