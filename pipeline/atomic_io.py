@@ -2,7 +2,8 @@
 
 A reader never sees a half-written file under the final name: after a crash (kill -9, full disk)
 there is either the complete old file, the complete new file, or a leftover ``.tmp-*`` file that
-no reader treats as finished.
+no reader treats as finished. The finished file gets the permissions of a file created with
+``open()``: 0666 less the process's umask (0644 under the usual umask 022), not ``mkstemp``'s 0600.
 """
 from __future__ import annotations
 
@@ -13,6 +14,22 @@ from collections.abc import Iterator
 from pathlib import Path
 
 TMP_PREFIX = ".tmp-"
+CREATE_MODE = 0o666  # what open() asks for; the umask takes its bits away
+
+
+def current_umask() -> int:
+    """The process's umask, read from /proc without changing it (other threads may be creating
+    files); where /proc does not say, set and restore it."""
+    try:
+        with open("/proc/self/status", encoding="ascii") as fh:
+            for line in fh:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
 
 
 @contextlib.contextmanager
@@ -30,6 +47,7 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     os.close(fd)
     tmp = Path(tmp_name)
     try:
+        os.chmod(tmp, CREATE_MODE & ~current_umask())
         yield tmp
         with open(tmp, "rb+") as fh:
             os.fsync(fh.fileno())

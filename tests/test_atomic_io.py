@@ -1,11 +1,13 @@
 """Atomic writes: a failure leaves the old file and no partial file under the final name."""
 from __future__ import annotations
 
+import os
+import stat
 from pathlib import Path
 
 import pytest
 
-from pipeline.atomic_io import TMP_PREFIX, atomic_path, write_text_atomic
+from pipeline.atomic_io import TMP_PREFIX, atomic_path, current_umask, write_text_atomic
 
 
 def test_write_replaces_whole_file(tmp_path: Path) -> None:
@@ -25,3 +27,18 @@ def test_failure_keeps_old_file_and_leaves_no_temp(tmp_path: Path) -> None:
             raise RuntimeError("disk full")
     assert target.read_text() == "old"
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(TMP_PREFIX)]
+
+
+@pytest.mark.parametrize("umask, mode", [(0o022, 0o644), (0o077, 0o600), (0o002, 0o664)])
+def test_finished_file_mode_follows_the_umask(tmp_path: Path, umask: int, mode: int) -> None:
+    """Like a file created with open(): 0666 less the umask (mkstemp alone gives 0600)."""
+    old = os.umask(umask)
+    try:
+        assert current_umask() == umask
+        write_text_atomic(tmp_path / "a.json", "x")
+        with atomic_path(tmp_path / "b.bin") as tmp:
+            tmp.write_bytes(b"y")  # writers given the temporary path (EXR, PNG, checkpoints)
+    finally:
+        os.umask(old)
+    for name in ("a.json", "b.bin"):
+        assert stat.S_IMODE((tmp_path / name).stat().st_mode) == mode, name
