@@ -13,8 +13,8 @@ from tqdm import tqdm
 from dataset_gen.cluster import SchedulerSpec, parse_scheduler
 from dataset_gen.config import DatasetConfig, DatasetError
 from dataset_gen.generate import generate_dataset
-from pipeline.cli import OneLineParser
 from pipeline.errors import DenoiserError
+from pipeline.usage import OneLineParser
 
 
 def _int_list(text: str) -> tuple[int, ...]:

@@ -16,7 +16,7 @@ import dataclasses
 import json
 import sys
 from pathlib import Path
-from typing import Any, NoReturn
+from typing import Any
 
 from model.config import PRESETS, ModelConfig, preset
 from model.distributed import RankInfo, ddp_config, launch, rank_from_env, train_distributed
@@ -24,6 +24,7 @@ from model.errors import ConfigError
 from model.train import resume_config, train
 from model.train_config import TrainConfig
 from pipeline.errors import DenoiserError
+from pipeline.usage import OneLineParser
 
 _FLAGS = {  # argparse dest -> TrainConfig field
     "data": "data", "steps": "steps", "batch": "batch", "lr": "lr", "grad_clip": "grad_clip", "seed": "seed",
@@ -37,16 +38,11 @@ _FLAGS = {  # argparse dest -> TrainConfig field
 _MODEL_FLAGS = ("arch", "transfer", "output", "aux_inputs")
 
 
-class _Parser(argparse.ArgumentParser):
-    def error(self, message: str) -> NoReturn:
-        print(f"{self.prog}: error: {message}", file=sys.stderr)
-        raise SystemExit(2)
-
-
 def build_parser() -> argparse.ArgumentParser:
     """The ``train`` argument parser (every option defaults to None = not given)."""
-    p = _Parser(prog="train", description="Train the Kim & Lee densely connected MC denoiser on the CPU.",
-                argument_default=None)
+    p = OneLineParser(prog="train",
+                      description="Train the Kim & Lee densely connected MC denoiser on the CPU.",
+                      argument_default=None)
     p.add_argument("--data", help="dataset folder (dataset.json, manifest.jsonl, images/)")
     p.add_argument("--out", required=True, help="run folder (checkpoints, log.jsonl, curves.png)")
     p.add_argument("--config", help="JSON file with TrainConfig fields")

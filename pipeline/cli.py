@@ -5,9 +5,9 @@ import argparse
 import json
 import sys
 from pathlib import Path
-from typing import NoReturn
 
 from pipeline.errors import DenoiserError
+from pipeline.usage import OneLineParser
 
 
 def _positive_int(text: str) -> int:
@@ -41,14 +41,6 @@ def _fail(prog: str, exc: BaseException) -> int:
     message = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
     print(f"{prog}: {message}", file=sys.stderr)
     return 1
-
-
-class OneLineParser(argparse.ArgumentParser):
-    """An ArgumentParser whose usage errors are one line on stderr (exit 2), without the usage text."""
-
-    def error(self, message: str) -> NoReturn:
-        print(f"{self.prog}: error: {message} (see --help)", file=sys.stderr)
-        raise SystemExit(2)
 
 
 def render_parser() -> argparse.ArgumentParser:
@@ -134,7 +126,7 @@ def _int_list(text: str) -> list[int]:
 
 
 def tradeoff_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="tradeoff", description="Measure error against time for each "
+    p = OneLineParser(prog="tradeoff", description="Measure error against time for each "
                                 "spp and denoiser; plot, Pareto frontier, equal-quality savings.")
     p.add_argument("scene", help="Mitsuba 3 scene XML file")
     p.add_argument("--spp", type=_int_list, default=[1, 2, 4, 8, 16, 32, 64, 128, 256, 512, 1024],
