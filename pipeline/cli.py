@@ -102,19 +102,49 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def denoise_main(argv: list[str] | None = None) -> int:
-    """``denoise IN.exr OUT.exr [--model PATH] [--reference REF.exr]``."""
-    p = OneLineParser(prog="denoise", description="Denoise an EXR rendered elsewhere.")
-    p.add_argument("input")
-    p.add_argument("output")
-    p.add_argument("--model", help="checkpoint (default: the shipped weights)")
-    p.add_argument("--reference", help="reference EXR: print metrics")
-    p.add_argument("--max-memory-mb", type=float, default=1024.0)
-    args = p.parse_args(argv)
-    from pipeline.run import denoise_file
+def denoise_parser() -> argparse.ArgumentParser:
+    p = OneLineParser(prog="denoise", description="Denoise an image rendered elsewhere (EXR with any "
+                      "layers or parts, PFM, Radiance HDR); the output keeps the input's layout.")
+    p.add_argument("files", nargs="+", metavar="IN OUT",
+                   help="input and output image (with --halves: the output only); an output "
+                   "ending in .pfm or .hdr is written in that format, anything else as EXR")
+    p.add_argument("--halves", nargs=2, metavar=("A", "B"),
+                   help="two independent halves of one render: denoise their mean, with the noise "
+                   "guard fed by their difference")
+    p.add_argument("--layer", metavar="NAME", help="colour layer of a multi-layer EXR "
+                   "(default: the bare R,G,B, else the one colour layer)")
+    p.add_argument("--variance-layer", metavar="NAME",
+                   help="layer holding the variance of the colour's estimate (default: 'variance')")
+    p.add_argument("--rgb-only", action="store_true",
+                   help="write a plain RGB EXR instead of the input's layers and parts")
+    p.add_argument("--spp", type=_positive_int,
+                   help="samples per pixel of the input, for the noise guard (default: the file's spp)")
+    p.add_argument("--no-noise-guard", action="store_true",
+                   help="ignore the variance: keep the denoiser's output as it is")
+    p.add_argument("--model", help="checkpoint or preset name (default: the shipped weights)")
+    p.add_argument("--reference", help="reference image: print metrics")
+    p.add_argument("--max-memory-mb", type=float, default=1024.0, help="tile memory bound")
+    return p
 
+
+def denoise_main(argv: list[str] | None = None) -> int:
+    """``denoise IN OUT [--layer NAME] [...]`` or ``denoise --halves A B OUT``."""
+    parser = denoise_parser()
+    args = parser.parse_args(argv)
+    if args.halves and len(args.files) != 1:
+        parser.error(f"with --halves give only the output file, got {len(args.files)} paths")
+    if not args.halves and len(args.files) != 2:
+        parser.error(f"expected an input and an output file, got {len(args.files)} path(s)")
+    if args.halves and args.variance_layer:
+        parser.error("--halves and --variance-layer exclude each other (the halves give the variance)")
+    from pipeline.denoise_file import DenoiseFileConfig, denoise_file
+
+    cfg = DenoiseFileConfig(inputs=list(args.halves or args.files[:1]), output=args.files[-1],
+                            model=args.model, reference=args.reference, layer=args.layer,
+                            variance_layer=args.variance_layer, rgb_only=args.rgb_only, spp=args.spp,
+                            noise_guard=not args.no_noise_guard, max_memory_mb=args.max_memory_mb)
     try:
-        result = denoise_file(args.input, args.output, args.model, args.reference, args.max_memory_mb)
+        result = denoise_file(cfg)
     except (DenoiserError, OSError, ValueError) as exc:
         return _fail("denoise", exc)
     print(json.dumps(result, indent=1))

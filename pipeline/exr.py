@@ -24,6 +24,7 @@ from pipeline.errors import ExrError
 
 XYZ_LAYERS = ("normal", "sh_normal", "nrm")
 HALF_MAX = 65504.0  # largest finite float16
+EXR_MAGIC = b"\x76\x2f\x31\x01"
 _LIBC = ctypes.CDLL(None)
 _QUIET_LOCK = threading.Lock()
 _STANDARD_KEYS = {"channels", "compression", "dataWindow", "displayWindow", "lineOrder",
@@ -53,7 +54,7 @@ def _check_image(name: str, img: np.ndarray, shape: tuple[int, ...] | None) -> n
     return img
 
 
-def _plane(values: np.ndarray, half: bool) -> np.ndarray:
+def plane(values: np.ndarray, half: bool) -> np.ndarray:
     """One channel as contiguous float32, or float16 with finite values beyond +-65504 saturated
     (a plain cast would turn them into Inf)."""
     if not half:
@@ -75,11 +76,11 @@ def write_exr(
     rgb = _check_image("RGB", rgb, None)
     channels: dict[str, np.ndarray] = {}
     for c, suffix in enumerate("RGB"):
-        channels[suffix] = _plane(rgb[:, :, c], half)
+        channels[suffix] = plane(rgb[:, :, c], half)
     for layer, img in (layers or {}).items():
         img = _check_image(layer, img, rgb.shape)
         for c, suffix in enumerate(layer_suffixes(layer)):
-            channels[f"{layer}.{suffix}"] = _plane(img[:, :, c], half)
+            channels[f"{layer}.{suffix}"] = plane(img[:, :, c], half)
     header: dict[str, object] = {"compression": OpenEXR.ZIP_COMPRESSION}
     for key, value in (metadata or {}).items():
         if key in _STANDARD_KEYS or not isinstance(value, (str, int, float)) or isinstance(value, bool):
@@ -97,10 +98,12 @@ def write_exr(
 
 
 @contextlib.contextmanager
-def _quiet_native_output() -> Iterator[None]:
+def quiet_native_output() -> Iterator[io.StringIO]:
     """Send what OpenEXR's C/C++ code prints on a corrupt file (to stdout and stderr) to /dev/null:
-    the one-line :class:`ExrError` replaces it. One reader at a time: threads that interleaved
-    their saves and restores of the descriptors could leave stdout pointing at /dev/null."""
+    the one-line :class:`ExrError` replaces it. Yields the buffer that receives what the binding
+    prints through Python (its warnings about parts it could not read). One reader at a time:
+    threads that interleaved their saves and restores of the descriptors could leave stdout
+    pointing at /dev/null."""
     with _QUIET_LOCK:
         for stream in (sys.stdout, sys.stderr):
             if stream is not None:
@@ -110,8 +113,9 @@ def _quiet_native_output() -> Iterator[None]:
             with open(os.devnull, "wb") as null:
                 os.dup2(null.fileno(), 1)
                 os.dup2(null.fileno(), 2)
-            with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
-                yield  # the binding's warnings go through Python's sys.stdout, the C core's to fd 2
+            captured = io.StringIO()
+            with contextlib.redirect_stdout(captured), contextlib.redirect_stderr(captured):
+                yield captured  # the binding's warnings go through Python's sys.stdout, the C core's to fd 2
         finally:
             _LIBC.fflush(None)  # C stdio buffers (where C++ std::cout writes) still hold their text
             os.dup2(saved[0], 1)
@@ -120,21 +124,26 @@ def _quiet_native_output() -> Iterator[None]:
                 os.close(fd)
 
 
+def check_exr_file(path: Path) -> None:
+    """Raise :class:`ExrError` unless ``path`` is an existing file that starts like an EXR."""
+    if not path.exists():
+        raise ExrError(f"{path}: file not found")
+    if path.is_dir():
+        raise ExrError(f"{path}: is a directory, not an EXR file")
+    with open(path, "rb") as fh:
+        if fh.read(4) != EXR_MAGIC:
+            raise ExrError(f"{path}: not an OpenEXR file")
+
+
 def read_exr(path: str | Path) -> ExrImage:
     """Read an EXR with R, G, B channels (float16 or float32) into float32 arrays.
 
     Raises :class:`ExrError` for a missing, truncated or non-EXR file, or one without RGB.
     """
     path = Path(path)
-    if not path.exists():
-        raise ExrError(f"{path}: file not found")
-    if path.is_dir():
-        raise ExrError(f"{path}: is a directory, not an EXR file")
-    with open(path, "rb") as fh:
-        if fh.read(4) != b"\x76\x2f\x31\x01":
-            raise ExrError(f"{path}: not an OpenEXR file")
+    check_exr_file(path)
     try:
-        with _quiet_native_output(), OpenEXR.File(str(path), separate_channels=True) as exr:
+        with quiet_native_output(), OpenEXR.File(str(path), separate_channels=True) as exr:
             header = dict(exr.header())
             channels = {k: np.array(v.pixels) for k, v in exr.channels().items()}
     except (RuntimeError, ValueError, OSError) as exc:

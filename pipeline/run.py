@@ -187,25 +187,3 @@ def summary_lines(metrics: dict[str, Any]) -> list[str]:
     else:
         lines.append(metrics["note"])
     return lines
-
-
-def denoise_file(src: str | Path, dst: str | Path, model: str | None = None,
-                 reference: str | Path | None = None,
-                 max_memory_mb: float = 1024.0) -> dict[str, Any]:
-    """``denoise IN.exr OUT.exr``: denoise an EXR rendered elsewhere; metrics if a reference."""
-    denoiser = Denoiser(model, max_memory_mb=max_memory_mb)
-    image = read_exr(src)
-    ref = read_exr(reference).rgb if reference else None
-    if ref is not None and ref.shape != image.rgb.shape:
-        raise DenoiserError(f"{reference}: reference is {ref.shape[1]}x{ref.shape[0]}, "
-                            f"input is {image.rgb.shape[1]}x{image.rgb.shape[0]}")
-    albedo = image.layers.get("albedo")
-    normals = image.layers.get("normal", image.layers.get("sh_normal"))
-    result = denoiser.denoise_array(image.rgb, albedo, normals)
-    write_exr(dst, result.image, metadata={"denoised_by": denoiser.name, "source": Path(src).name})
-    out: dict[str, Any] = {"input": str(src), "output": str(dst), "denoise_s": result.seconds,
-                           "model": denoiser.name, "nonfinite_values": result.nonfinite,
-                           "negative_values": result.negative}
-    if ref is not None:
-        out["quality"] = {"noisy": all_metrics(image.rgb, ref), "denoised": all_metrics(result.image, ref)}
-    return _json_safe(out)

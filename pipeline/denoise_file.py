@@ -1,0 +1,175 @@
+"""``denoise``'s core: denoise an image rendered elsewhere and write it in the layout it came in.
+
+Inputs: an EXR (single- or multi-part, any number of layers, float16 or float32), a PFM or a
+Radiance HDR file; or two EXRs holding independent halves of one render (``halves``). The colour
+layer is :func:`pipeline.exr_layers.pick_color_layer`'s choice (or ``layer``); albedo and normal
+layers beside it go to models that use them. The variance of the image's Monte Carlo estimate,
+from the halves (:func:`pipeline.noise_guard.half_variance`) or a variance layer, goes to the
+denoiser, which applies the noise guard with it. The output replaces the colour layer's channels
+and keeps every other layer, part and attribute (``rgb_only``: a plain RGB EXR); a ``.pfm`` or
+``.hdr`` output path writes that format instead.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pipeline.bitmap_io import image_format, output_format, read_bitmap, write_bitmap
+from pipeline.denoise import Denoiser
+from pipeline.errors import DenoiserError, ExrError
+from pipeline.exr import write_exr
+from pipeline.exr_layers import (ALBEDO_WORDS, NORMAL_WORDS, VARIANCE_WORDS, ExrFile, Layer,
+                                 describe_layers, find_aux_layer, pick_color_layer, read_exr_file,
+                                 replace_layer, write_exr_file)
+from pipeline.metrics import all_metrics
+from pipeline.noise_guard import DEFAULT_STRENGTH, half_variance, strength_for
+
+
+@dataclass
+class DenoiseFileConfig:
+    """Settings of one ``denoise`` run (filled by the CLI).
+
+    ``inputs``: one image, or the two halves of a render. ``spp``: samples per pixel of the
+    (combined) input, for the noise guard's strength; None: the files' ``spp`` attribute, else
+    strength 1. ``variance_layer``: None picks a layer named ``variance`` if there is one.
+    """
+
+    inputs: list[str]
+    output: str
+    model: str | None = None
+    reference: str | None = None
+    layer: str | None = None
+    variance_layer: str | None = None
+    rgb_only: bool = False
+    spp: int | None = None
+    noise_guard: bool = True
+    max_memory_mb: float = 1024.0
+
+
+@dataclass
+class InputImage:
+    """An input read for denoising: HxWx3 float32 ``rgb`` and what came with it."""
+
+    path: str
+    rgb: np.ndarray
+    exr: ExrFile | None = None  # the whole file, for writing back its layout (EXR inputs)
+    layer: Layer | None = None
+    albedo: np.ndarray | None = None
+    normals: np.ndarray | None = None
+    variance: np.ndarray | None = None
+    variance_layer: str | None = None
+    spp: int | None = None
+
+
+def _spp_attribute(exr: ExrFile, part: int) -> int | None:
+    value = exr.metadata(part).get("spp")
+    try:
+        spp = int(value) if value is not None else None
+    except (TypeError, ValueError):
+        return None
+    return spp if spp and spp > 0 else None
+
+
+def _variance(exr: ExrFile, color: Layer, name: str | None) -> tuple[np.ndarray | None, str | None]:
+    if name is not None:
+        layer = exr.layers.get(name)
+        if layer is None or layer.kind == "xyz":
+            raise ExrError(f"{exr.path}: no variance layer named {name!r} (layers: {describe_layers(exr)})")
+    else:
+        layer = find_aux_layer(exr, VARIANCE_WORDS, color, ("rgb", "scalar"))
+        if layer is None:
+            return None, None
+    var = exr.image(layer)
+    return (np.repeat(var, 3, axis=2) if var.shape[2] == 1 else var), layer.name
+
+
+def read_input(path: str | Path, layer: str | None = None, variance_layer: str | None = None
+               ) -> InputImage:
+    """Read one input image (EXR, PFM or HDR) with its colour layer and what is beside it."""
+    fmt = image_format(path)
+    if fmt != "exr":
+        if layer is not None or variance_layer is not None:
+            raise DenoiserError(f"{path}: a {fmt.upper()} file has no layers (--layer and "
+                                "--variance-layer are for EXR files)")
+        return InputImage(str(path), read_bitmap(path))
+    exr = read_exr_file(path)
+    color = pick_color_layer(exr, layer)
+    aux = {key: find_aux_layer(exr, words, color, ("rgb", "xyz"))
+           for key, words in (("albedo", ALBEDO_WORDS), ("normals", NORMAL_WORDS))}
+    variance, var_name = _variance(exr, color, variance_layer)
+    return InputImage(str(path), exr.image(color), exr, color,
+                      *(exr.image(aux[k]) if aux[k] else None for k in ("albedo", "normals")),
+                      variance=variance, variance_layer=var_name, spp=_spp_attribute(exr, color.part))
+
+
+def combine_halves(a: InputImage, b: InputImage) -> InputImage:
+    """The render whose two independent halves are ``a`` and ``b``: their spp-weighted mean (equal
+    weights unless both files give their ``spp``) with its variance, in ``a``'s layout."""
+    if a.rgb.shape != b.rgb.shape:
+        raise DenoiserError(f"{b.path}: half is {b.rgb.shape[1]}x{b.rgb.shape[0]}, "
+                            f"{a.path} is {a.rgb.shape[1]}x{a.rgb.shape[0]}")
+    n_a, n_b = (a.spp, b.spp) if a.spp and b.spp else (1, 1)
+    mean = ((n_a * a.rgb.astype(np.float64) + n_b * b.rgb) / (n_a + n_b)).astype(np.float32)
+    spp = a.spp + b.spp if a.spp and b.spp else None
+    return InputImage(a.path, mean, a.exr, a.layer, a.albedo, a.normals,
+                      half_variance(a.rgb, b.rgb, n_a, n_b), "halves", spp)
+
+
+def _write(cfg: DenoiseFileConfig, image: InputImage, result: np.ndarray, model: str) -> str:
+    """Write the output; return the layout written."""
+    attributes = {"denoised_by": model, "source": Path(image.path).name}
+    if output_format(cfg.output) != "exr":
+        write_bitmap(cfg.output, result)
+        return output_format(cfg.output)
+    half = image.exr is not None and image.layer is not None and image.exr.is_half(image.layer)
+    if cfg.rgb_only or image.exr is None or image.layer is None:
+        write_exr(cfg.output, result, metadata=attributes, half=half)
+        return "rgb"
+    write_exr_file(cfg.output, replace_layer(image.exr, image.layer, result, attributes))
+    parts = len(image.exr.parts)
+    return f"as read: {len(image.exr.layers)} layers" + (f" in {parts} parts" if parts > 1 else "")
+
+
+def denoise_file(cfg: DenoiseFileConfig) -> dict[str, Any]:
+    """Read, denoise, write; return what was done (and quality against ``cfg.reference``)."""
+    if len(cfg.inputs) not in (1, 2):
+        raise DenoiserError(f"expected one input or two halves, got {len(cfg.inputs)} files")
+    if len(cfg.inputs) == 2 and cfg.variance_layer is not None:
+        raise DenoiserError("two halves give the variance: --variance-layer is for a single input")
+    denoiser = Denoiser(cfg.model, max_memory_mb=cfg.max_memory_mb)
+    images = [read_input(p, cfg.layer, cfg.variance_layer) for p in cfg.inputs]
+    image = images[0] if len(images) == 1 else combine_halves(*images)
+    ref = read_input(cfg.reference).rgb if cfg.reference else None
+    if ref is not None and ref.shape != image.rgb.shape:
+        raise DenoiserError(f"{cfg.reference}: reference is {ref.shape[1]}x{ref.shape[0]}, "
+                            f"input is {image.rgb.shape[1]}x{image.rgb.shape[0]}")
+    spp = cfg.spp or image.spp
+    variance = image.variance if cfg.noise_guard else None
+    strength = strength_for(spp) if spp else DEFAULT_STRENGTH
+    result = denoiser.denoise_array(image.rgb, image.albedo, image.normals, variance=variance,
+                                    strength=strength)
+    layout = _write(cfg, image, result.image, denoiser.name)
+    out: dict[str, Any] = {
+        "input": cfg.inputs[0] if len(cfg.inputs) == 1 else list(cfg.inputs), "output": cfg.output,
+        "layer": image.layer.name if image.layer else None, "layout": layout,
+        "denoise_s": result.seconds, "model": denoiser.name, "nonfinite_values": result.nonfinite,
+        "negative_values": result.negative,
+        "noise_guard": None if variance is None else {
+            "variance": image.variance_layer, "spp": spp, "strength": strength,
+            "mean_weight": result.guard_weight}}
+    if ref is not None:
+        out["quality"] = {"noisy": all_metrics(image.rgb, ref), "denoised": all_metrics(result.image, ref)}
+    return _json_safe(out)
+
+
+def _json_safe(value: Any) -> Any:
+    if isinstance(value, float) and not np.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_safe(v) for v in value]
+    return value
