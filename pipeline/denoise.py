@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from pipeline.errors import DenoiserError
-from pipeline.noise_guard import DEFAULT_STRENGTH, guard, strength_for
+from pipeline.noise_guard import DEFAULT_STRENGTH, blend, blend_weight, strength_for
 from pipeline.tiling import core_for_budget, run_tiled
 
 if TYPE_CHECKING:
@@ -59,6 +59,7 @@ class DenoiseResult:
     seconds: float
     tiles: int
     guard_weight: float | None = None  # noise guard's mean weight of the denoiser (None: no guard)
+    guard_map: np.ndarray | None = None  # HxW float32 in [0, 1]: that weight per pixel
 
 
 def count_invalid(rgb: np.ndarray) -> tuple[int, int]:
@@ -162,13 +163,15 @@ class Denoiser:
         count = [0]
         out = denoise_image(self.net, rgb, aux, self.core_size(),
                             progress=lambda n, total: count.__setitem__(0, total))
-        weight = None
+        weight = weights = None
         if variance is not None:
             with np.errstate(invalid="ignore"):
                 clean = np.clip(np.nan_to_num(np.asarray(rgb, np.float32), nan=0.0, posinf=0.0,
                                               neginf=0.0), 0.0, None)
-            out, weight = guard(clean, out, np.asarray(variance, np.float32), strength=strength)
-        return DenoiseResult(out, nonfinite, negative, time.perf_counter() - start, count[0], weight)
+            weights = blend_weight(clean, out, np.asarray(variance, np.float32), strength=strength)
+            out, weight = blend(clean, out, weights), float(weights.mean())
+        return DenoiseResult(out, nonfinite, negative, time.perf_counter() - start, count[0], weight,
+                             None if weights is None else weights[:, :, 0])
 
     def denoise_render(self, render: RenderResult) -> DenoiseResult:
         """Denoise a render of :mod:`pipeline.render` with what it carries: its AOVs and, for a

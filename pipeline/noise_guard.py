@@ -98,11 +98,16 @@ def blend_weight(noisy: np.ndarray, denoised: np.ndarray, variance: np.ndarray,
     return w.astype(np.float32)
 
 
-def guard(noisy: np.ndarray, denoised: np.ndarray, variance: np.ndarray,
-          radius: int = DEFAULT_RADIUS, strength: float = DEFAULT_STRENGTH) -> tuple[np.ndarray, float]:
-    """``noisy + w * (denoised - noisy)`` with ``w`` = :func:`blend_weight`: float32, >= 0 where
-    both inputs are. Returns the image and the mean weight (1: the denoiser's output unchanged)."""
-    w = blend_weight(noisy, denoised, variance, radius, strength)
+def blend(noisy: np.ndarray, denoised: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """``noisy + w * (denoised - noisy)`` for an HxWx1 weight ``w``: float32, >= 0 where both inputs are."""
     noisy, denoised = np.asarray(noisy, np.float32), np.asarray(denoised, np.float32)
     out = np.where(w >= 1, denoised, noisy + w * (denoised - noisy))  # w = 1: exactly the output
-    return out.astype(np.float32), float(w.mean())
+    return out.astype(np.float32)
+
+
+def guard(noisy: np.ndarray, denoised: np.ndarray, variance: np.ndarray,
+          radius: int = DEFAULT_RADIUS, strength: float = DEFAULT_STRENGTH) -> tuple[np.ndarray, float]:
+    """:func:`blend` with ``w`` = :func:`blend_weight`. Returns the image and the mean weight (1:
+    the denoiser's output unchanged)."""
+    w = blend_weight(noisy, denoised, variance, radius, strength)
+    return blend(noisy, denoised, w), float(w.mean())
