@@ -7,7 +7,7 @@ PY := $(VENV)/bin/python
 TORCH_VERSION := 2.13.0
 STAMP := $(VENV)/.installed
 
-.PHONY: test demo evaluate bootstrap llvm clean
+.PHONY: test demo evaluate bootstrap llvm chromium clean
 
 test: bootstrap
 	$(PY) -m pytest -q
@@ -18,7 +18,7 @@ demo: bootstrap
 evaluate: bootstrap
 	$(PY) benchmarks/evaluate.py
 
-bootstrap: llvm $(STAMP)
+bootstrap: llvm chromium $(STAMP)
 
 # Mitsuba 3.9.1's LLVM variants abort with LLVM 14/15; install Debian's libllvm19 when we can.
 llvm:
@@ -30,6 +30,15 @@ llvm:
 	  (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libllvm19 >/dev/null) \
 	    || echo "warning: could not install libllvm19; Mitsuba will use the slow scalar_rgb variant"; \
 	else echo "warning: no libLLVM >= 16 and no root apt-get; Mitsuba will use the slow scalar_rgb variant"; fi
+
+# The report's browser test (tests/test_viewer.py) opens report.html in Debian's headless chromium.
+chromium:
+	@if command -v chromium >/dev/null || command -v chromium-browser >/dev/null; then :; \
+	elif [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+	  echo "installing chromium (the report's browser test)"; \
+	  (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends \
+	    chromium >/dev/null) || echo "warning: could not install chromium; the report's browser test cannot run"; \
+	else echo "warning: no chromium and no root apt-get; the report's browser test cannot run"; fi
 
 $(VENV)/bin/python:
 	$(PYTHON) -m venv $(VENV)

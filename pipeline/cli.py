@@ -55,8 +55,11 @@ def render_parser() -> argparse.ArgumentParser:
     ref = p.add_mutually_exclusive_group()
     ref.add_argument("--reference", help="reference EXR of the same size")
     ref.add_argument("--reference-spp", type=_positive_int, help="render a reference at N spp")
-    p.add_argument("--compare", choices=["oidn"], action="append", default=[],
-                   help="also denoise with OIDN colour-only (needs pyoidn)")
+    compare = p.add_mutually_exclusive_group()
+    compare.add_argument("--compare", choices=["oidn"], action="append", default=[],
+                         help="denoise with OIDN colour-only too, and fail without pyoidn (default: "
+                         "compare whenever pyoidn is installed)")
+    compare.add_argument("--no-compare", action="store_true", help="do not run OIDN")
     p.add_argument("--param", type=_param, action="append", default=[], metavar="NAME=VALUE",
                    help="scene $parameter")
     p.add_argument("--out", help="output folder (default: the scene's name)")
@@ -85,7 +88,8 @@ def main(argv: list[str] | None = None) -> int:
     cfg = RunConfig(scene=args.scene, out=args.out or Path(args.scene).stem, spp=args.spp or 128,
                     resolution=tuple(args.res) if args.res else None, seed=args.seed,
                     model=args.model, reference=args.reference, reference_spp=args.reference_spp,
-                    compare_oidn="oidn" in args.compare, params=dict(args.param),
+                    compare_oidn=False if args.no_compare else ("oidn" in args.compare or None),
+                    params=dict(args.param),
                     max_memory_mb=args.max_memory_mb, time_budget=args.time_budget, curves=args.curves,
                     noise_guard=not args.no_noise_guard)
     log = (lambda s: None) if args.quiet else (lambda s: print(f"... {s}", file=sys.stderr))

@@ -1,4 +1,5 @@
-"""Person-readable outputs of a denoising run: comparison PNG with zoomed crops, report.html.
+"""Person-readable outputs of a denoising run: report.html (the interactive viewer of
+:mod:`pipeline.viewer` with the metrics, timings and settings), comparison PNG with zoomed crops.
 
 The comparison shows the images side by side (noisy | ours | OIDN | reference) and below them
 zoomed crops of the regions where our result has the largest error against the reference (or,
@@ -6,19 +7,16 @@ without a reference, where it differs most from the noisy input).
 """
 from __future__ import annotations
 
-import base64
 import html
-import json
-import math
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from PIL import Image, ImageDraw
 
-from pipeline.atomic_io import write_text_atomic
 from pipeline.metrics import tonemap
 from pipeline.png import save_png, to_display
+from pipeline.viewer import Page, Table, ViewerRow, ViewerSet, details, flip_map
 
 LABEL_H = 16
 
@@ -72,41 +70,89 @@ def comparison_image(images: dict[str, np.ndarray], focus: str, against: str,
     return np.asarray(sheet)
 
 
-def _fmt(value: Any) -> str:
-    if isinstance(value, float):
-        return "inf" if math.isinf(value) else f"{value:.4g}"
-    return html.escape(str(value))
+LABELS = {"noisy": "noisy", "denoised": "ours", "oidn": "OIDN", "reference": "reference"}
+METRIC_COLUMNS = [("psnr", "PSNR dB", "high"), ("ssim", "SSIM", "high"), ("relmse", "relMSE", "low"),
+                  ("smape", "SMAPE", "low"), ("flip", "FLIP", "low"), ("hdr_flip", "HDR-FLIP", "low")]
 
 
-def _png_data_uri(path: Path) -> str:
-    return "data:image/png;base64," + base64.b64encode(path.read_bytes()).decode("ascii")
+def run_page(metrics: dict[str, Any], images: dict[str, np.ndarray],
+             guard_map: np.ndarray | None = None) -> Page:
+    """The report of one render-and-denoise run: the viewer over noisy / ours / OIDN / reference
+    (+ FLIP maps against the reference, + the noise guard's weight map), the metrics table, the
+    run's timings, model and settings. ``images``: name -> HxWx3 linear radiance, names as in
+    :data:`LABELS`; ``metrics``: the run's metrics.json dict."""
+    w, h = metrics["resolution"]
+    model = metrics["model"]
+    page = Page(f"{Path(str(metrics['scene'])).name}: denoising report",
+                f"{w}x{h} at {metrics['spp']} spp, model {model['name']}, Mitsuba {metrics['mitsuba']} "
+                f"({metrics['variant']})")
+    reference = images.get("reference")
+    ids = {name: page.radiance(img) for name, img in images.items()}
+    rows = [ViewerRow(LABELS.get(name, name), ids[name],
+                      page.scalar(flip_map(img, reference)) if reference is not None and name != "reference"
+                      else None)
+            for name, img in images.items()]
+    if guard_map is not None:
+        rows.append(ViewerRow("noise guard weight", page.scalar(guard_map), kind="weight"))
+    page.add_set(ViewerSet(Path(str(metrics["scene"])).stem, rows, ids.get("reference"),
+                           "" if reference is not None else "no reference: no error maps"))
+    _quality_section(page, metrics)
+    _run_section(page, metrics)
+    return page
 
 
-def write_report(out: Path, metrics: dict[str, Any], pngs: list[Path]) -> Path:
-    """Write ``out/report.html``: the metrics table and the PNGs embedded (self-contained)."""
-    rows = ""
-    quality = metrics.get("quality") or {}
-    keys = sorted({k for m in quality.values() for k in m})
-    if quality:
-        rows += "<tr><th>image</th>" + "".join(f"<th>{html.escape(k)}</th>" for k in keys) + "</tr>"
-        for name, vals in quality.items():
-            rows += f"<tr><td>{html.escape(name)}</td>" + "".join(
-                f"<td>{_fmt(vals.get(k, ''))}</td>" for k in keys) + "</tr>"
-    pictures = "".join(
-        f"<figure><img src='{_png_data_uri(p)}' alt='{html.escape(p.name)}'>"
-        f"<figcaption>{html.escape(p.name)}</figcaption></figure>" for p in pngs)
-    details = html.escape(json.dumps({k: v for k, v in metrics.items() if k != "quality"},
-                                     indent=1, default=str))
-    page = f"""<!doctype html><html><head><meta charset="utf-8"><title>{html.escape(str(metrics.get('scene', 'report')))}</title>
-<style>body{{font-family:sans-serif;background:#111;color:#ddd;margin:1.5em}}table{{border-collapse:collapse}}
-td,th{{border:1px solid #444;padding:3px 8px;text-align:right}}img{{image-rendering:pixelated;max-width:100%}}
-figure{{margin:1em 0}}pre{{background:#1b1b1b;padding:1em;overflow:auto}}</style></head><body>
-<h1>{html.escape(str(metrics.get('scene', '')))}</h1>
-<p>{html.escape(str(metrics.get('note', '')))}</p>
-<table>{rows}</table>{pictures}<h2>Run details</h2><pre>{details}</pre></body></html>"""
-    path = out / "report.html"
-    write_text_atomic(path, page)
-    return path
+def _quality_section(page: Page, metrics: dict[str, Any]) -> None:
+    quality, timings = metrics.get("quality"), metrics["timings"]
+    seconds = {"denoised": timings.get("denoise_s"), "oidn": timings.get("oidn_s")}
+    note = f"<p class='note'>{html.escape(str(metrics.get('note', '')))}. {html.escape(_oidn_note(metrics))}</p>"
+    if not quality:
+        stats = metrics.get("stats", {})
+        table = Table(["image", "mean", "min", "max", "p99"],
+                      [[LABELS.get(n, n), s["mean"], s["min"], s["max"], s["p99"]] for n, s in stats.items()])
+        page.add_section("Images (no reference)", note + table.html())
+        return
+    table = Table(["image", *(label for _, label, _ in METRIC_COLUMNS), "denoise s"],
+                  better={label: sense for _, label, sense in METRIC_COLUMNS})
+    for name, values in quality.items():
+        table.rows.append([LABELS.get(name, name),
+                           *(_inf(values.get(key)) for key, _, _ in METRIC_COLUMNS), seconds.get(name)])
+    page.add_section("Quality against the reference", note + table.html())
+
+
+def _inf(value: Any) -> Any:
+    return float("inf") if value is None else value  # metrics.json writes an infinite PSNR as null
+
+
+def _oidn_note(metrics: dict[str, Any]) -> str:
+    oidn = metrics.get("oidn") or {}
+    return oidn.get("note", "")
+
+
+def _run_section(page: Page, metrics: dict[str, Any]) -> None:
+    model = metrics["model"]
+    timings = Table(["step", "seconds"], [[k.removesuffix("_s").replace("_", " "), v]
+                                          for k, v in metrics["timings"].items()])
+    guard = metrics.get("noise_guard")
+    settings = [["scene", metrics["scene"]], ["resolution", "x".join(map(str, metrics["resolution"]))],
+                ["spp", metrics["spp"]], ["seed", metrics["seed"]],
+                ["model", f"{model['name']} (sha256 {model['sha256'][:12]})"],
+                ["Mitsuba", f"{metrics['mitsuba']} {metrics['variant']}"],
+                ["noise guard", "off (one-piece render)" if not guard else
+                 f"mean weight {guard['mean_weight']:.3f}, strength {guard['strength']:g}, "
+                 f"window {2 * guard['radius'] + 1}x{2 * guard['radius'] + 1}"]]
+    if metrics.get("budget"):
+        b = metrics["budget"]
+        settings.append(["time budget", f"{b['budget_s']:g} s: {b['model']} at {b['spp']} spp, "
+                                        f"actual {b['actual_s']:.2f} s"])
+    body = Table(["setting", "value"], settings).html() + timings.html()
+    body += details({"model config": model.get("config"), "sanitized": metrics.get("sanitized")})
+    page.add_section("Run", body)
+
+
+def write_report(out: Path, metrics: dict[str, Any], images: dict[str, np.ndarray],
+                 guard_map: np.ndarray | None = None) -> Path:
+    """Write ``out/report.html`` (:func:`run_page`), self-contained."""
+    return run_page(metrics, images, guard_map).write(out / "report.html")
 
 
 def write_previews(out: Path, images: dict[str, np.ndarray]) -> list[Path]:

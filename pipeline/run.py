@@ -24,7 +24,7 @@ from pipeline.errors import DenoiserError
 from pipeline.exr import read_exr, write_exr
 from pipeline.metrics import all_metrics
 from pipeline.noise_guard import DEFAULT_PIVOT_SPP, DEFAULT_RADIUS, strength_for
-from pipeline.oidn import oidn_denoise
+from pipeline.oidn import oidn_available, oidn_denoise
 from pipeline.render import load_scene, pass_seeds, prepare, render_loaded
 from pipeline.report import comparison_image, write_previews, write_report
 from pipeline.png import save_png
@@ -42,7 +42,7 @@ class RunConfig:
     model: str | None = None
     reference: str | None = None
     reference_spp: int | None = None
-    compare_oidn: bool = False
+    compare_oidn: bool | None = None  # OIDN beside ours; None: whenever pyoidn is installed
     params: dict[str, str] = field(default_factory=dict)
     max_memory_mb: float = 1024.0
     time_budget: float | None = None  # seconds: spp (and, with model "auto", the model) chosen to fit
@@ -85,6 +85,17 @@ def _check_out(out: Path) -> None:
         raise DenoiserError(f"{out}: output folder is not writable ({exc.strerror or exc})") from None
 
 
+def _oidn_setting(compare: bool | None) -> dict[str, Any]:
+    """Whether OIDN is compared, and why: asked for (True; fails later without pyoidn), declined
+    (False), or by default (None) whenever pyoidn is installed."""
+    if compare is False:
+        return {"compared": False, "note": "OIDN not compared (--no-compare)"}
+    if compare is None and not oidn_available():
+        return {"compared": False, "note": "OIDN not compared: pyoidn is not installed "
+                "(pip install '.[oidn]')"}
+    return {"compared": True, "note": "OIDN: Intel Open Image Denoise, colour only (pyoidn)"}
+
+
 def run(cfg: RunConfig, log: Callable[[str], None] = lambda s: None) -> dict[str, Any]:
     """Render, denoise, compare; write every output; return the metrics dict."""
     if cfg.reference and cfg.reference_spp:
@@ -118,7 +129,9 @@ def run(cfg: RunConfig, log: Callable[[str], None] = lambda s: None) -> dict[str
         plan.actual_s = time.perf_counter() - t_start
     images = {"noisy": noisy.rgb, "denoised": result.image}
     timings = {"scene_load_s": t_load, "render_s": noisy.seconds, "denoise_s": result.seconds}
-    if cfg.compare_oidn:
+    oidn = _oidn_setting(cfg.compare_oidn)
+    if oidn["compared"]:
+        log("denoising with OIDN")
         images["oidn"], timings["oidn_s"] = oidn_denoise(noisy.rgb)
     if cfg.reference_spp:
         log(f"rendering the reference at {cfg.reference_spp} spp")
@@ -131,10 +144,9 @@ def run(cfg: RunConfig, log: Callable[[str], None] = lambda s: None) -> dict[str
     meta = {"scene": Path(cfg.scene).stem, "spp": spp, "seed": cfg.seed}
     for name, img in images.items():
         write_exr(out / f"{name}.exr", img, metadata={**meta, "image": name})
-    pngs = write_previews(out, images)
+    write_previews(out, images)
     focus_against = ("denoised", "reference") if reference is not None else ("denoised", "noisy")
     save_png(out / "comparison.png", comparison_image(images, *focus_against))
-    pngs.insert(0, out / "comparison.png")
 
     timings["total_s"] = time.perf_counter() - t_start
     h, w = noisy.rgb.shape[:2]
@@ -144,6 +156,7 @@ def run(cfg: RunConfig, log: Callable[[str], None] = lambda s: None) -> dict[str
         "mitsuba": metadata.version("mitsuba"), "variant": noisy.variant, "timings": timings,
         "sanitized": {"render_nonfinite_pixels": noisy.nonfinite, "denoiser_nonfinite_values":
                       result.nonfinite, "denoiser_negative_values": result.negative},
+        "oidn": oidn,
     }
     metrics["noise_guard"] = ({"radius": DEFAULT_RADIUS, "pivot_spp": DEFAULT_PIVOT_SPP,
                                "strength": strength_for(spp), "mean_weight": result.guard_weight}
@@ -158,7 +171,7 @@ def run(cfg: RunConfig, log: Callable[[str], None] = lambda s: None) -> dict[str
         metrics["stats"] = {n: image_stats(img) for n, img in images.items()}
         metrics["note"] = "no reference given: timings and image statistics only"
     metrics = _json_safe(metrics)
-    write_report(out, metrics, pngs)
+    write_report(out, metrics, images, result.guard_map)
     write_text_atomic(out / "metrics.json", json.dumps(metrics, indent=1) + "\n")
     return metrics
 

@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 import json
+import os
+import stat
 from pathlib import Path
 
 import numpy as np
@@ -12,8 +14,8 @@ from pipeline.exr import read_exr, write_exr
 from tests.test_denoise import write_tiny_checkpoint
 
 DEMO = Path(__file__).resolve().parents[1] / "scenes" / "examples" / "demo.xml"
-OUTPUTS = ("noisy.exr", "denoised.exr", "reference.exr", "noisy.png", "denoised.png",
-           "reference.png", "comparison.png", "metrics.json", "report.html", "config.json")
+OUTPUTS = ("noisy.exr", "denoised.exr", "oidn.exr", "reference.exr", "noisy.png", "denoised.png",
+           "oidn.png", "reference.png", "comparison.png", "metrics.json", "report.html", "config.json")
 
 
 @pytest.fixture(scope="module")
@@ -24,18 +26,25 @@ def ckpt(tmp_path_factory: pytest.TempPathFactory) -> Path:
 @pytest.fixture(scope="module")
 def demo_run(tmp_path_factory: pytest.TempPathFactory, ckpt: Path) -> Path:
     out = tmp_path_factory.mktemp("run") / "demo"
-    code = main([str(DEMO), "--spp", "4", "--res", "32", "24", "--reference-spp", "64",
-                 "--model", str(ckpt), "--out", str(out), "--quiet"])
+    old = os.umask(0o022)
+    try:
+        code = main([str(DEMO), "--spp", "4", "--res", "32", "24", "--reference-spp", "64",
+                     "--model", str(ckpt), "--out", str(out), "--quiet"])
+    finally:
+        os.umask(old)
     assert code == 0
     return out
 
 
 def test_render_and_denoise_writes_everything(demo_run: Path) -> None:
+    """OIDN is compared by default (pyoidn is installed by make); every file readable by all
+    (0644 under the umask 022 the fixture ran with)."""
     for name in OUTPUTS:
         assert (demo_run / name).stat().st_size > 0, name
+        assert stat.S_IMODE((demo_run / name).stat().st_mode) == 0o644, name
     metrics = json.loads((demo_run / "metrics.json").read_text())
     assert metrics["resolution"] == [32, 24] and metrics["spp"] == 4
-    assert set(metrics["quality"]) == {"noisy", "denoised"}
+    assert set(metrics["quality"]) == {"noisy", "denoised", "oidn"} and metrics["oidn"]["compared"]
     for row in metrics["quality"].values():
         for key in ("psnr", "ssim", "relmse", "smape", "flip", "hdr_flip"):
             assert np.isfinite(row[key]), key
@@ -43,7 +52,7 @@ def test_render_and_denoise_writes_everything(demo_run: Path) -> None:
     assert all(v >= 0 for v in metrics["timings"].values())
     assert read_exr(demo_run / "denoised.exr").rgb.shape == (24, 32, 3)
     html = (demo_run / "report.html").read_text()
-    assert "data:image/png;base64," in html and "PSNR" in html
+    assert "PSNR" in html and "OIDN" in html and 'data-dtype="f16"' in html and "noise guard weight" in html
 
 
 def test_reference_file_and_no_reference(tmp_path: Path, demo_run: Path, ckpt: Path) -> None:
@@ -55,10 +64,12 @@ def test_reference_file_and_no_reference(tmp_path: Path, demo_run: Path, ckpt: P
     assert again["quality"]["noisy"]["psnr"] == pytest.approx(first["quality"]["noisy"]["psnr"], rel=1e-6)
     bare = tmp_path / "bare"
     assert main([str(DEMO), "--spp", "2", "--res", "16", "16", "--model", str(ckpt), "--quiet",
-                 "--out", str(bare)]) == 0
+                 "--no-compare", "--out", str(bare)]) == 0
     metrics = json.loads((bare / "metrics.json").read_text())
     assert "quality" not in metrics and "no reference" in metrics["note"]
-    assert set(metrics["stats"]) == {"noisy", "denoised"}
+    assert set(metrics["stats"]) == {"noisy", "denoised"} and not (bare / "oidn.exr").exists()
+    assert metrics["oidn"] == {"compared": False, "note": "OIDN not compared (--no-compare)"}
+    assert json.loads((bare / "config.json").read_text())["compare_oidn"] is False
 
 
 def test_noise_guard_on_by_default_and_off_on_request(tmp_path: Path, demo_run: Path, ckpt: Path) -> None:
@@ -135,3 +146,14 @@ def test_shipped_model_beats_noisy_input_on_demo_scene(tmp_path: Path) -> None:
     quality = json.loads((out / "metrics.json").read_text())["quality"]
     assert quality["denoised"]["psnr"] > quality["noisy"]["psnr"] + 1.0
     assert quality["denoised"]["relmse"] < quality["noisy"]["relmse"]
+
+
+def test_oidn_compared_by_default_only_when_installed(monkeypatch: pytest.MonkeyPatch) -> None:
+    import pipeline.run as run_module
+
+    monkeypatch.setattr(run_module, "oidn_available", lambda: False)
+    missing = run_module._oidn_setting(None)
+    assert not missing["compared"] and "pyoidn is not installed" in missing["note"]
+    assert run_module._oidn_setting(True)["compared"]  # asked for: oidn_denoise then names pyoidn
+    monkeypatch.setattr(run_module, "oidn_available", lambda: True)
+    assert run_module._oidn_setting(None)["compared"] and not run_module._oidn_setting(False)["compared"]
