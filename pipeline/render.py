@@ -1,11 +1,13 @@
 """The rendering core: load a prepared scene, render at a given spp/seed, return linear radiance.
 
 Every render goes through :mod:`pipeline.scene_io`, so it uses a box pixel filter and a float32
-film. Large sample counts are split into passes (independent seeds) whose mean is returned, so
-memory stays bounded by ``max_samples_per_pass`` samples in flight.
+film. Large sample counts are split into passes (independent seeds) of at most
+``max_samples_per_pass`` samples, whose mean is returned. A film too large for the memory budget
+is rendered in crops (:mod:`pipeline.render_crops`), each written straight into the output images.
 """
 from __future__ import annotations
 
+import contextlib
 import math
 import time
 from collections.abc import Mapping, Sequence
@@ -17,9 +19,11 @@ import numpy as np
 
 from pipeline.backend import select_variant
 from pipeline.errors import RenderError, SceneError
+from pipeline.render_crops import Crop, crop_layout, crop_seed, cropped, film_window, max_crop_pixels
 from pipeline.scene_io import AOV_TYPES, PreparedScene, prepare_dict, prepare_xml
 
 DEFAULT_MAX_SAMPLES_PER_PASS = 1 << 24
+DEFAULT_MAX_MEMORY_MB = 1024.0  # the commands' --max-memory-mb default
 MAX_SEED = 2**32 - 1
 
 
@@ -40,6 +44,7 @@ class RenderResult:
     seconds: float = 0.0
     variant: str = ""
     variance: np.ndarray | None = None  # HxWx3 variance of ``rgb``'s estimate (``halves`` renders)
+    crops: int = 1  # film crops rendered one after the other (pipeline.render_crops)
 
 
 def _one_line(exc: BaseException) -> str:
@@ -116,12 +121,12 @@ def prepare(
     return prepare_xml(scene, resolution, aovs, params)
 
 
-def sanitize_nonfinite(img: np.ndarray) -> tuple[np.ndarray, int]:
-    """Replace NaN/Inf values of an HxWxC image by 0; return it and the count of bad pixels."""
-    img = np.array(img, dtype=np.float32, copy=True)
-    bad = ~np.isfinite(img)
-    img[bad] = 0.0
-    return img, int(bad.any(axis=2).sum())
+def zero_nonfinite(img: np.ndarray) -> np.ndarray:
+    """Set the NaN/Inf values of an HxWxC image to 0 in place; return the HxW mask of the pixels
+    that had one."""
+    finite = np.isfinite(img)
+    img[~finite] = 0.0
+    return ~finite.all(axis=2)
 
 
 def pass_seeds(seed: int, passes: int) -> list[int]:
@@ -137,7 +142,8 @@ def pass_seeds(seed: int, passes: int) -> list[int]:
 
 
 def _accumulate(scene: Any, spp: int, seed: int, max_samples_per_pass: int) -> np.ndarray:
-    """Mean of ``spp`` samples per pixel in passes of bounded size (independent seeds), float64."""
+    """Mean of ``spp`` samples per pixel of the film's current crop window in passes of at most
+    ``max_samples_per_pass`` samples (independent seeds), float64 HxWxC."""
     import mitsuba as mi
 
     width, height = (int(v) for v in scene.sensors()[0].film().crop_size())
@@ -146,10 +152,46 @@ def _accumulate(scene: Any, spp: int, seed: int, max_samples_per_pass: int) -> n
     counts = [per_pass] * (passes - 1) + [spp - per_pass * (passes - 1)]
     acc: np.ndarray | None = None
     for n, s in zip(counts, pass_seeds(seed, passes)):
-        img = np.array(mi.render(scene, spp=n, seed=s), dtype=np.float64) * (n / spp)
-        acc = img if acc is None else acc + img
+        # np.asarray views Mitsuba's image (no float32 copy); the product is float64(x) * (n/spp)
+        img = np.multiply(np.asarray(mi.render(scene, spp=n, seed=s)), n / spp, dtype=np.float64)
+        if acc is None:
+            acc = img
+        else:
+            acc += img
+        del img
     assert acc is not None
     return acc
+
+
+def _render_crop(scene: Any, spp: int, seed: int, max_samples_per_pass: int,
+                 halves: bool) -> tuple[np.ndarray, np.ndarray | None]:
+    """The film's current crop window: float64 HxWxC mean and, for ``halves``, its variance."""
+    if not halves:
+        return _accumulate(scene, spp, seed, max_samples_per_pass), None
+    from pipeline.noise_guard import half_variance
+
+    n_a = spp // 2
+    seed_b = pass_seeds(seed ^ 0x5A5A5A5A, 2)[1]
+    a = _accumulate(scene, n_a, seed, max_samples_per_pass)
+    b = _accumulate(scene, spp - n_a, seed_b, max_samples_per_pass)
+    with np.errstate(invalid="ignore", over="ignore"):
+        variance = half_variance(a[:, :, :3], b[:, :, :3], n_a, spp - n_a)
+    a *= n_a / spp  # in place, the same values as a * (n_a / spp) + b * (n_b / spp)
+    b *= (spp - n_a) / spp
+    a += b
+    return a, variance
+
+
+def _store(acc: np.ndarray, outputs: list[np.ndarray], crop: Crop) -> int:
+    """Write a crop's float64 channels into the float32 outputs (3 channels each), NaN/Inf
+    replaced by 0; return the count of pixels that had one."""
+    x, y, w, h = crop
+    bad = np.zeros((h, w), bool)
+    for i, out in enumerate(outputs):
+        view = out[y:y + h, x:x + w]
+        view[...] = acc[:, :, 3 * i: 3 * i + 3]
+        bad |= zero_nonfinite(view)
+    return int(bad.sum())
 
 
 def render_loaded(
@@ -159,41 +201,53 @@ def render_loaded(
     aovs: Sequence[str] = (),
     max_samples_per_pass: int = DEFAULT_MAX_SAMPLES_PER_PASS,
     halves: bool = False,
+    max_memory_mb: float | None = DEFAULT_MAX_MEMORY_MB,
 ) -> RenderResult:
     """Render an already loaded scene (prepared with the same ``aovs``).
 
     ``halves`` (spp >= 2): render the samples as two independent halves (seeds ``seed`` and a mix
     of it) and also return ``variance``, the per-pixel variance estimate of the combined mean
     (:func:`pipeline.noise_guard.half_variance`); the image has the same expectation and spp.
+
+    ``max_memory_mb`` bounds the render's scratch memory beyond the returned images: a film whose
+    pixels do not fit is rendered in crops with seeds of their own (:mod:`pipeline.render_crops`;
+    None: one piece). The image is a deterministic function of (scene, spp, seed, aovs, halves,
+    crop layout); a render in one crop (any film that fits) is the same whatever the budget; other
+    layouts draw other samples from the same distribution.
     """
     if isinstance(spp, bool) or not isinstance(spp, int) or spp < 1:
         raise RenderError(f"spp must be a positive integer, got {spp!r}")
     if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed <= MAX_SEED:
         raise RenderError(f"seed must be an integer in [0, 2^32), got {seed!r}")
+    import drjit as dr
     import mitsuba as mi
 
     start = time.perf_counter()
-    variance = None
-    if halves and spp >= 2:
-        from pipeline.noise_guard import half_variance
-
-        n_a = spp // 2
-        seed_b = pass_seeds(seed ^ 0x5A5A5A5A, 2)[1]
-        a = _accumulate(scene, n_a, seed, max_samples_per_pass)
-        b = _accumulate(scene, spp - n_a, seed_b, max_samples_per_pass)
-        acc = a * (n_a / spp) + b * ((spp - n_a) / spp)
-        with np.errstate(invalid="ignore", over="ignore"):
-            variance = half_variance(a[:, :, :3], b[:, :, :3], n_a, spp - n_a)
-    else:
-        acc = _accumulate(scene, spp, seed, max_samples_per_pass)
+    halves = halves and spp >= 2
+    channels = 3 + 3 * len(aovs)
+    _, _, width, height = film_window(scene)
+    crops = crop_layout(width, height, max_crop_pixels(channels, halves, max_memory_mb))
+    outputs = [np.empty((height, width, 3), np.float32) for _ in range(1 + len(aovs))]
+    variance = np.empty((height, width, 3), np.float32) if halves else None
+    nonfinite = 0
+    with contextlib.ExitStack() as stack:
+        set_crop = stack.enter_context(cropped(scene)) if len(crops) > 1 else None
+        for index, crop in enumerate(crops):
+            if set_crop is not None:
+                set_crop(crop)
+            acc, var = _render_crop(scene, spp, crop_seed(seed, index), max_samples_per_pass, halves)
+            if acc.shape != (crop[3], crop[2], channels):
+                raise RenderError(f"render returned {acc.shape[2]} channels, expected {channels}")
+            nonfinite += _store(acc, outputs, crop)
+            if variance is not None and var is not None:
+                x, y, w, h = crop
+                variance[y:y + h, x:x + w] = var
+            del acc, var
+    dr.flush_malloc_cache()  # hand Dr.Jit's cached film buffers back before the caller goes on
     seconds = time.perf_counter() - start
-    expected = 3 + 3 * len(aovs)
-    if acc.shape[2] != expected:
-        raise RenderError(f"render returned {acc.shape[2]} channels, expected {expected}")
-    data, nonfinite = sanitize_nonfinite(acc.astype(np.float32))
-    out_aovs = {name: data[:, :, 3 + 3 * i: 6 + 3 * i] for i, name in enumerate(aovs)}
-    return RenderResult(rgb=np.ascontiguousarray(data[:, :, :3]), aovs=out_aovs, spp=spp, seed=seed,
-                        nonfinite=nonfinite, seconds=seconds, variant=mi.variant(), variance=variance)
+    return RenderResult(rgb=outputs[0], aovs=dict(zip(aovs, outputs[1:])), spp=spp, seed=seed,
+                        nonfinite=nonfinite, seconds=seconds, variant=mi.variant(), variance=variance,
+                        crops=len(crops))
 
 
 def render(
@@ -206,15 +260,17 @@ def render(
     max_samples_per_pass: int = DEFAULT_MAX_SAMPLES_PER_PASS,
     base_dir: str | Path | None = None,
     halves: bool = False,
+    max_memory_mb: float | None = DEFAULT_MAX_MEMORY_MB,
 ) -> RenderResult:
     """Load and render a scene file or dict with a box filter and a float32 film.
 
     ``resolution`` is (width, height); ``aovs`` names extra buffers from ``AOV_TYPES`` (rendered
     only when asked for); ``params`` fills an XML scene's ``$name`` parameters; ``base_dir``
-    resolves a dict scene's relative asset paths; ``halves``: see :func:`render_loaded`.
+    resolves a dict scene's relative asset paths; ``halves`` and ``max_memory_mb``: see
+    :func:`render_loaded`.
     """
     loaded = load_scene(prepare(scene, resolution, aovs, params, base_dir))
-    return render_loaded(loaded, spp, seed, aovs, max_samples_per_pass, halves)
+    return render_loaded(loaded, spp, seed, aovs, max_samples_per_pass, halves, max_memory_mb)
 
 
 __all__ = ["AOV_TYPES", "RenderResult", "load_scene", "prepare", "render", "render_loaded"]

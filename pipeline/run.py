@@ -25,6 +25,7 @@ from pipeline.exr import read_exr, write_exr
 from pipeline.metrics import all_metrics
 from pipeline.noise_guard import DEFAULT_PIVOT_SPP, DEFAULT_RADIUS, strength_for
 from pipeline.oidn import oidn_available, oidn_denoise
+from pipeline.peak_rss import PeakRSS
 from pipeline.render import load_scene, pass_seeds, prepare, render_loaded
 from pipeline.report import comparison_image, write_previews, write_report
 from pipeline.png import save_png
@@ -119,7 +120,9 @@ def run(cfg: RunConfig, log: Callable[[str], None] = lambda s: None) -> dict[str
                         halves=cfg.noise_guard)
         denoiser, spp = candidates[plan.model], plan.spp
     log(f"rendering {spp} spp")
-    noisy = render_loaded(scene, spp, cfg.seed, aovs, halves=cfg.noise_guard)
+    with PeakRSS() as render_memory:  # Mitsuba's render and its buffers, reported on their own
+        noisy = render_loaded(scene, spp, cfg.seed, aovs, halves=cfg.noise_guard,
+                              max_memory_mb=cfg.max_memory_mb)
     if reference is not None and reference.shape != noisy.rgb.shape:
         raise DenoiserError(f"{cfg.reference}: reference is {reference.shape[1]}x{reference.shape[0]}"
                             f", render is {noisy.rgb.shape[1]}x{noisy.rgb.shape[0]}")
@@ -136,7 +139,8 @@ def run(cfg: RunConfig, log: Callable[[str], None] = lambda s: None) -> dict[str
     if cfg.reference_spp:
         log(f"rendering the reference at {cfg.reference_spp} spp")
         plain = load_scene(prepare(cfg.scene, cfg.resolution, (), cfg.params)) if aovs else scene
-        ref = render_loaded(plain, cfg.reference_spp, pass_seeds(cfg.seed, 2)[1])
+        ref = render_loaded(plain, cfg.reference_spp, pass_seeds(cfg.seed, 2)[1],
+                            max_memory_mb=cfg.max_memory_mb)
         reference, timings["reference_render_s"] = ref.rgb, ref.seconds
     if reference is not None:
         images["reference"] = reference
@@ -157,6 +161,7 @@ def run(cfg: RunConfig, log: Callable[[str], None] = lambda s: None) -> dict[str
         "sanitized": {"render_nonfinite_pixels": noisy.nonfinite, "denoiser_nonfinite_values":
                       result.nonfinite, "denoiser_negative_values": result.negative},
         "oidn": oidn,
+        "render_memory": {**render_memory.to_dict(), "budget_mb": cfg.max_memory_mb, "crops": noisy.crops},
     }
     metrics["noise_guard"] = ({"radius": DEFAULT_RADIUS, "pivot_spp": DEFAULT_PIVOT_SPP,
                                "strength": strength_for(spp), "mean_weight": result.guard_weight}

@@ -1,14 +1,21 @@
-"""The rendering core: determinism, box filter, AOVs only on request, passes, sanitising."""
+"""The rendering core: determinism, box filter, AOVs only on request, passes, crops, sanitising."""
 from __future__ import annotations
 
+import json
+import threading
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
 
+from pipeline import render_crops
 from pipeline.errors import RenderError
-from pipeline.render import load_scene, pass_seeds, prepare, render, render_loaded, sanitize_nonfinite
+from pipeline.render import load_scene, pass_seeds, prepare, render, render_loaded, zero_nonfinite
+from pipeline.render_crops import crop_layout, crop_seed, film_window, max_crop_pixels
 from tests.conftest import lit_plane_scene
+
+DEMO = Path(__file__).resolve().parents[1] / "scenes" / "examples" / "demo.xml"
 
 
 def test_same_seed_same_image_other_seed_other_image(plane_scene: dict) -> None:
@@ -67,11 +74,12 @@ def test_pass_seeds_are_distinct() -> None:
     assert seeds[0] == 7 and len(set(seeds)) == 1000 and all(0 <= s < 2**32 for s in seeds)
 
 
-def test_sanitize_counts_and_replaces_nonfinite() -> None:
+def test_zero_nonfinite_marks_and_replaces_in_place() -> None:
     img = np.ones((3, 4, 3), np.float32)
     img[0, 0, 1], img[1, 2, 0], img[1, 2, 2], img[2, 3, 2] = np.nan, np.inf, -np.inf, -1.0
-    out, count = sanitize_nonfinite(img)
-    assert count == 2 and np.isfinite(out).all() and out[0, 0, 1] == 0 and out[2, 3, 2] == -1.0
+    bad = zero_nonfinite(img)
+    assert bad.shape == (3, 4) and bad.sum() == 2 and bad[0, 0] and bad[1, 2]
+    assert np.isfinite(img).all() and img[0, 0, 1] == 0 and img[2, 3, 2] == -1.0
 
 
 @pytest.mark.parametrize("spp", [0, -4, 2.5, "8", True])
@@ -85,3 +93,120 @@ def test_bad_seed_and_resolution_are_refused(plane_scene: dict) -> None:
         render(plane_scene, spp=1, seed=-1)
     with pytest.raises(RenderError, match="resolution must be positive"):
         render(plane_scene, spp=1, resolution=(0, 16))
+
+
+# ----------------------------------------------------------------------------- crops (memory budget)
+MIN_BUDGET_MB = 1.0  # below the fixed cost: crops of render_crops.MIN_CROP_PIXELS (4096 px)
+
+
+def _constant_scene(width: int, height: int) -> dict[str, Any]:
+    """Only a constant environment visible: every sample's radiance is exactly RADIANCE."""
+    return {"type": "scene", "integrator": {"type": "path"},
+            "sensor": {"type": "perspective", "fov": 40.0, "film": {"type": "hdrfilm", "width": width,
+                                                                    "height": height}},
+            "env": {"type": "constant", "radiance": {"type": "rgb", "value": RADIANCE}}}
+
+
+RADIANCE = [0.5, 0.25, 2.0]
+
+
+@pytest.mark.parametrize(("width", "height", "max_pixels", "count"), [
+    (64, 48, None, 1), (64, 48, 64 * 48, 1), (128, 96, 4096, 3), (100, 41, 1000, 5), (4500, 3, 4096, 6),
+    (7, 5, 1, 35)])
+def test_crop_layout_tiles_the_film_exactly_once(width: int, height: int, max_pixels: int | None,
+                                                 count: int) -> None:
+    crops = crop_layout(width, height, max_pixels)
+    assert len(crops) == count
+    cover = np.zeros((height, width), int)
+    for x, y, w, h in crops:
+        assert w >= 1 and h >= 1 and (max_pixels is None or w * h <= max_pixels)
+        cover[y:y + h, x:x + w] += 1
+    assert (cover == 1).all()
+    assert len({w for _, _, w, _ in crops}) <= 2 and len({h for _, _, _, h in crops}) <= 2
+    if max_pixels is not None and width <= max_pixels:
+        assert all(w == width for _, _, w, _ in crops)  # bands the width of the film: fewest crops
+
+
+def test_budget_bounds_the_crop_pixels() -> None:
+    assert max_crop_pixels(3, True, None) is None
+    small, large = max_crop_pixels(3, True, 256), max_crop_pixels(3, True, 1024)
+    assert small is not None and large is not None and 4 * small < large
+    assert max_crop_pixels(9, True, 256) < small < max_crop_pixels(3, False, 256)  # more buffers, fewer pixels
+    fixed_mb = render_crops.FIXED_BYTES / render_crops.MB
+    assert small * render_crops.bytes_per_pixel(3, True) <= (256 - fixed_mb) * render_crops.MB
+    assert max_crop_pixels(3, True, MIN_BUDGET_MB) == render_crops.MIN_CROP_PIXELS
+    for bad in (0, -5.0, float("inf"), float("nan")):
+        with pytest.raises(RenderError, match="memory budget must be positive and finite"):
+            max_crop_pixels(3, False, bad)
+
+
+def test_crop_seeds_are_distinct_and_crop_zero_keeps_the_seed() -> None:
+    seeds = [crop_seed(7, i) for i in range(1000)]
+    assert seeds[0] == 7 and len(set(seeds)) == 1000 and all(0 <= s < 2**32 for s in seeds)
+    assert not set(seeds[1:]) & set(pass_seeds(7, 1000))  # no crop reuses a pass seed of crop 0
+
+
+@pytest.mark.parametrize("size", [(128, 96), (4500, 3)])  # bands; a grid (one row exceeds the budget)
+def test_cropped_constant_scene_has_no_seams(size: tuple[int, int]) -> None:
+    res = render(_constant_scene(*size), spp=4, seed=2, halves=True, max_memory_mb=MIN_BUDGET_MB)
+    assert res.crops == (3 if size == (128, 96) else 6)
+    assert res.rgb.shape == (size[1], size[0], 3) and res.nonfinite == 0
+    assert (res.rgb == np.float32(RADIANCE)).all()  # every pixel of every crop, none left unwritten
+    assert res.variance is not None and (res.variance == 0).all()
+
+
+def test_one_crop_render_is_the_same_whatever_the_budget(plane_scene: dict) -> None:
+    scene = load_scene(prepare(plane_scene, aovs=("albedo",)))
+    images = [render_loaded(scene, 4, 3, ("albedo",), halves=True, max_memory_mb=mb)
+              for mb in (None, 1024.0, MIN_BUDGET_MB)]  # 32x32 = 1024 pixels fit any budget
+    assert [r.crops for r in images] == [1, 1, 1]
+    for r in images[1:]:
+        assert np.array_equal(r.rgb, images[0].rgb) and np.array_equal(r.variance, images[0].variance)
+        assert np.array_equal(r.aovs["albedo"], images[0].aovs["albedo"])
+
+
+def test_cropped_render_matches_one_piece_in_distribution(mi: Any) -> None:
+    """Same expectation band by band (within 4 standard errors from the halves' variance), same
+    noise level, deterministic for a given budget, and the scene's film window is restored."""
+    scene = load_scene(prepare(lit_plane_scene(mi, rfilter="box"), (128, 96), aovs=("albedo",)))
+    whole = render_loaded(scene, 16, 1, ("albedo",), halves=True, max_memory_mb=None)
+    crops = render_loaded(scene, 16, 1, ("albedo",), halves=True, max_memory_mb=MIN_BUDGET_MB)
+    again = render_loaded(scene, 16, 1, ("albedo",), halves=True, max_memory_mb=MIN_BUDGET_MB)
+    assert (whole.crops, crops.crops) == (1, 3)
+    assert np.array_equal(crops.rgb, again.rgb) and not np.array_equal(crops.rgb, whole.rgb)
+    assert film_window(scene) == (0, 0, 128, 96)
+    assert np.array_equal(render_loaded(scene, 16, 1, ("albedo",), halves=True).rgb, whole.rgb)
+    assert whole.variance is not None and crops.variance is not None
+    for rows in (slice(0, 32), slice(32, 64), slice(64, 96)):  # the three bands
+        n = 128 * 32
+        diff = crops.rgb[rows].mean(axis=(0, 1)) - whole.rgb[rows].mean(axis=(0, 1))
+        se = np.sqrt((crops.variance[rows].sum(axis=(0, 1)) + whole.variance[rows].sum(axis=(0, 1)))) / n
+        assert (np.abs(diff) < 4 * se).all(), (diff, se)
+    ratio = crops.variance.mean() / whole.variance.mean()
+    assert 0.8 < ratio < 1.25
+    np.testing.assert_allclose(crops.aovs["albedo"], np.broadcast_to([0.6, 0.5, 0.4], (96, 128, 3)), atol=1e-5)
+
+
+def test_peak_rss_sees_memory_held_in_the_block() -> None:
+    from pipeline.peak_rss import MB, PeakRSS
+
+    with PeakRSS() as memory:
+        block = np.ones(64 * MB // 8)  # touched: resident
+        threading.Event().wait(0.05)  # the sampler runs while it is held
+        del block
+    figures = memory.to_dict()
+    assert figures["over_start_mb"] is not None and figures["over_start_mb"] >= 60
+    assert figures["peak_mb"] == pytest.approx(figures["start_mb"] + figures["over_start_mb"])
+
+
+def test_render_and_denoise_renders_in_crops_and_reports_render_memory(tmp_path: Path) -> None:
+    from pipeline.cli import main
+    from tests.test_denoise import write_tiny_checkpoint
+
+    ckpt = write_tiny_checkpoint(tmp_path / "tiny.ckpt")
+    out = tmp_path / "run"
+    assert main([str(DEMO), "--spp", "4", "--res", "128", "96", "--model", str(ckpt), "--out", str(out),
+                 "--max-memory-mb", str(MIN_BUDGET_MB), "--no-compare", "--quiet"]) == 0
+    memory = json.loads((out / "metrics.json").read_text())["render_memory"]
+    assert memory["crops"] == 3 and memory["budget_mb"] == MIN_BUDGET_MB
+    assert memory["start_mb"] > 0 and memory["peak_mb"] >= memory["start_mb"]
