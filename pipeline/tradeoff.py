@@ -264,9 +264,9 @@ def _prepare_out(out: Path) -> None:
 
 def run_tradeoff(cfg: TradeoffConfig, progress: Callable[[int], ProgressBar] | None = None
                  ) -> dict[str, Any]:
-    """Measure, then write ``tradeoff.json`` (written last), ``.csv``, ``.png`` and ``config.json``
-    into ``cfg.out``; returns the result dict (points, pareto, equal_quality, scene info)."""
-    from pipeline.tradeoff_report import plot_tradeoff, write_csv
+    """Measure, then write ``tradeoff.json`` (written last), ``.csv``, ``.png``, ``report.html``
+    and ``config.json`` into ``cfg.out``; returns the result dict (points, pareto, equal_quality, scene info)."""
+    from pipeline.tradeoff_report import plot_tradeoff, write_csv, write_report
 
     out = Path(cfg.out)
     cfg.check()
@@ -275,5 +275,6 @@ def run_tradeoff(cfg: TradeoffConfig, progress: Callable[[int], ProgressBar] | N
     result = measure(cfg, progress)
     write_csv(out / "tradeoff.csv", result)
     plot_tradeoff(out / "tradeoff.png", result)
+    write_report(out / "report.html", json_safe(result), out / "tradeoff.png")
     write_text_atomic(out / "tradeoff.json", json.dumps(json_safe(result), indent=1) + "\n")
     return result

@@ -1,4 +1,5 @@
-"""``tradeoff``'s outputs: the CSV, the error-against-time plot and the equal-quality table.
+"""``tradeoff``'s outputs: the CSV, the error-against-time plot, the equal-quality table and the
+HTML report (:mod:`pipeline.viewer`'s page: plot and tables).
 
 All read the result dict of :func:`pipeline.tradeoff.measure` (seconds, metric values as
 :mod:`pipeline.metrics` computes them; the plotted error is :func:`pipeline.pareto.metric_error`).
@@ -13,6 +14,7 @@ from typing import Any
 
 from pipeline.atomic_io import write_text_atomic
 from pipeline.pareto import ERROR_LABEL, metric_error
+from pipeline.viewer import Page, Table, details, png_figure
 
 CSV_FIELDS = ("denoiser", "spp", "render_s", "denoise_s", "total_s", "psnr", "relmse", "flip",
               "pareto", "equal_quality_raw_spp", "equal_quality_saving")
@@ -109,3 +111,43 @@ def saving_table(result: dict[str, Any]) -> list[str]:
                      f"{_num(value, '.4g'):>10}{mark + _num(eq['raw_spp'], '.0f'):>11}"
                      f"{_num(eq['raw_s'], '.3f'):>9}{_num(eq['saving'], '.2f') + 'x':>9}")
     return lines
+
+
+def tradeoff_page(result: dict[str, Any], plot_png: bytes) -> Page:
+    """The HTML report of a tradeoff run (the report viewer's page): the plot, the equal-quality
+    table and every measured point (Pareto points marked, best value per column highlighted)."""
+    metric = result["metric"]
+    w, h = result["resolution"]
+    ref = result.get("reference") or {}
+    page = Page(f"{Path(result['scene']).name}: error against time",
+                f"{w}x{h}; reference {ref.get('spp', '')} spp {ref.get('file') or ''}; "
+                f"Mitsuba {result.get('mitsuba', '')} ({result.get('variant', '')}); "
+                f"times are medians of repeated runs")
+    page.add_section("Error against time", png_figure(plot_png, f"{ERROR_LABEL[metric]} against "
+                                                      "render + denoise seconds, Pareto frontier dashed"))
+    points = {(p["denoiser"], p["spp"]): p for p in result["points"]}
+    saving = Table(["denoiser", "spp", "time s", metric, "raw spp of equal error", "raw s", "saving x"],
+                   better={"saving x": "high"})
+    for eq in _equal_rows(result).values():
+        raw = f"~{eq['raw_spp']:.0f}" if eq["extrapolated"] and eq["raw_spp"] is not None else eq["raw_spp"]
+        saving.rows.append([eq["denoiser"], eq["spp"], points[(eq["denoiser"], eq["spp"])]["total_s"],
+                            points[(eq["denoiser"], eq["spp"])][metric], raw, eq["raw_s"], eq["saving"]])
+    page.add_section(f"Equal-quality saving ({ERROR_LABEL[metric]})",
+                     "<p class='note'>the raw render's spp (and time) that reaches each denoised point's "
+                     "error; ~ = extrapolated beyond the measured spp</p>" + saving.html())
+    front = {tuple(p) for p in result["pareto"][metric]}
+    table = Table(["denoiser", "spp", "render s", "denoise s", "total s", "PSNR dB", "relMSE", "FLIP",
+                   "Pareto"], better={"PSNR dB": "high", "relMSE": "low", "FLIP": "low"})
+    for p in result["points"]:
+        table.rows.append([p["denoiser"], p["spp"], p["render_s"], p["denoise_s"], p["total_s"],
+                           p["psnr"], p["relmse"], p["flip"],
+                           "yes" if (p["denoiser"], p["spp"]) in front else ""])
+    page.add_section("Every measurement", table.html())
+    page.add_section("Run", details({k: v for k, v in result.items()
+                                     if k not in ("points", "pareto", "equal_quality")}))
+    return page
+
+
+def write_report(path: Path, result: dict[str, Any], plot: Path) -> None:
+    """Write the tradeoff run's ``report.html`` beside its plot (embedded, self-contained)."""
+    tradeoff_page(result, plot.read_bytes()).write(path)

@@ -50,6 +50,9 @@ def test_tradeoff_end_to_end(tmp_path: Path, ckpts: list[Path], capsys: pytest.C
     png = (out / "tradeoff.png").read_bytes()
     assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 5000
     assert json.loads((out / "config.json").read_text())["spp"] == [2, 8]
+    report = (out / "report.html").read_text()  # the plot embedded, the tables, nothing fetched
+    assert "data:image/png;base64," in report and "Equal-quality saving" in report and "tiny-2" in report
+    assert report.count("<tr>") >= 1 + len(result["points"]) and "https://" not in report
     printed = capsys.readouterr().out
     assert "equal-quality saving" in printed and "tiny-2" in printed
 
