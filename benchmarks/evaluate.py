@@ -13,8 +13,10 @@ same renders; the first is "ours" in the per-scene table, and a second table com
 means and denoise times (seconds per megapixel) with OIDN's.
 
 Usage: python benchmarks/evaluate.py [--model PATH | --models A,B,C] [--spp 16,128] [--scenes a,b]
-       [--out DIR]
-Writes DIR/evaluate.json and DIR/evaluate.md (default DIR: benchmarks/results).
+       [--out DIR] [--report-spp N]
+Writes DIR/evaluate.json, DIR/evaluate.md and DIR/evaluate.html (default DIR: benchmarks/results):
+the scoreboard page of the report viewer, every scene's noisy / ours / OIDN / reference images at
+``--report-spp`` (default: the lowest spp; about 1 MB per 256-px scene) with FLIP maps, and the tables.
 """
 from __future__ import annotations
 
@@ -40,6 +42,7 @@ from pipeline.exr import read_exr  # noqa: E402
 from pipeline.metrics import flip, psnr, relmse  # noqa: E402
 from pipeline.oidn import oidn_denoise  # noqa: E402
 from pipeline.render import load_scene, prepare, render_loaded  # noqa: E402
+from pipeline.viewer import Page, Table, ViewerRow, ViewerSet, flip_map  # noqa: E402
 
 EVAL_DIR = ROOT.parent / "shared" / "eval-scenes"
 SEED = 7
@@ -49,10 +52,12 @@ def _scores(img: np.ndarray, ref: np.ndarray) -> dict[str, float]:
     return {"psnr": psnr(img, ref), "relmse": relmse(img, ref), "flip": flip(img, ref)}
 
 
-def evaluate_scene(folder: Path, spps: list[int], denoisers: dict[str, Denoiser]) -> dict[str, Any]:
+def evaluate_scene(folder: Path, spps: list[int], denoisers: dict[str, Denoiser],
+                   keep: dict[str, np.ndarray] | None = None, keep_spp: int | None = None) -> dict[str, Any]:
     """Render ``folder/scene.xml`` at each spp; score noisy, each model and OIDN against its reference.
 
-    The first model's figures are also stored as ``ours``; every model's under ``models``.
+    The first model's figures are also stored as ``ours``; every model's under ``models``. With
+    ``keep``, the images at ``keep_spp`` (noisy, ours, oidn) and the reference are put in it.
     """
     info = json.loads((folder / "reference.json").read_text())
     ref = read_exr(folder / "reference.exr").rgb
@@ -61,11 +66,14 @@ def evaluate_scene(folder: Path, spps: list[int], denoisers: dict[str, Denoiser]
     row: dict[str, Any] = {"ceiling_db": info["reference_psnr_ceiling_db"], "resolution": [w, h]}
     for spp in spps:
         noisy = render_loaded(scene, spp, SEED)
-        models = {}
+        models, ours_image = {}, None
         for name, denoiser in denoisers.items():
             result = denoiser.denoise_array(noisy.rgb)
             models[name] = {**_scores(result.image, ref), "s": result.seconds}
+            ours_image = result.image if ours_image is None else ours_image
         oidn, oidn_s = oidn_denoise(noisy.rgb)
+        if keep is not None and spp == keep_spp:
+            keep.update(noisy=noisy.rgb, ours=ours_image, oidn=oidn, reference=ref)
         first = models[next(iter(models))]
         entry = {"render_s": noisy.seconds, "ours_s": first["s"], "oidn_s": oidn_s,
                  "noisy": _scores(noisy.rgb, ref), "ours": {k: v for k, v in first.items() if k != "s"},
@@ -163,6 +171,7 @@ def main() -> int:
                    help="flag scenes whose reference ceiling is below this (default 40 dB)")
     p.add_argument("--eval-dir", default=str(EVAL_DIR))
     p.add_argument("--out", default=str(ROOT / "benchmarks" / "results"))
+    p.add_argument("--report-spp", type=int, help="spp whose images evaluate.html shows (default: the lowest)")
     args = p.parse_args()
     eval_dir = Path(args.eval_dir)
     if not eval_dir.is_dir():
@@ -189,10 +198,16 @@ def main() -> int:
     for d in denoisers.values():  # first calls pay one-off set-up: keep it out of the timings
         d.denoise_array(np.full((64, 64, 3), 0.5, dtype=np.float32))
     denoiser = next(iter(denoisers.values()))
+    report_spp = args.report_spp or min(spps)
+    if report_spp not in spps:
+        print(f"evaluate: --report-spp {report_spp} is not one of --spp {args.spp}", file=sys.stderr)
+        return 2
     start = time.perf_counter()
     rows: dict[str, Any] = {}
+    images: dict[str, dict[str, np.ndarray]] = {}
     for name in tqdm(names, desc="eval scenes", unit="scene"):
-        rows[name] = evaluate_scene(eval_dir / name, spps, denoisers)
+        images[name] = {}
+        rows[name] = evaluate_scene(eval_dir / name, spps, denoisers, images[name], report_spp)
     summary = summarize(rows, spps, args.ceiling_db)
     result = {"model": {"path": str(denoiser.path), "sha256": denoiser.sha256,
                         "config": denoiser.config.to_dict(), "step": denoiser.meta.get("step")},
@@ -208,9 +223,60 @@ def main() -> int:
     if len(denoisers) > 1:
         table += "\n" + models_markdown(summary, spps)
     write_text_atomic(out / "evaluate.md", table)
+    scoreboard_page(result, images, report_spp).write(out / "evaluate.html")
     print(table)
-    print(f"wrote {out / 'evaluate.json'} and {out / 'evaluate.md'}")
+    print(f"wrote {out / 'evaluate.json'}, {out / 'evaluate.md'} and {out / 'evaluate.html'}")
     return 0
+
+
+def scoreboard_page(result: dict[str, Any], images: dict[str, dict[str, np.ndarray]],
+                    report_spp: int) -> Page:
+    """The scoreboard in the report viewer: one set per scene (noisy / ours / OIDN / reference at
+    ``report_spp``, FLIP maps against the reference; n / p flip scenes), the scored means, every
+    scene's row and, with several models, their comparison. ``result``: evaluate.json's dict;
+    ``images``: scene -> {noisy, ours, oidn, reference} HxWx3 linear radiance."""
+    spps, ceiling = result["spp"], result["ceiling_db"]
+    model = Path(result["model"]["path"]).name
+    page = Page(f"Scoreboard: {len(result['scenes'])} evaluation scenes",
+                f"model {model}; images at {report_spp} spp (seed {result['seed']}) against the "
+                f"2048-spp references; {result['machine']['cores']} cores, {result['wall_s']:.0f} s")
+    for name, imgs in images.items():
+        if not imgs:
+            continue
+        ref = page.radiance(imgs["reference"])
+        rows = [ViewerRow(label, page.radiance(imgs[key]), page.scalar(flip_map(imgs[key], imgs["reference"])))
+                for key, label in (("noisy", "noisy"), ("ours", "ours"), ("oidn", "OIDN"))]
+        e = result["scenes"][name][str(report_spp)]
+        note = (f"{report_spp} spp, PSNR noisy {e['noisy']['psnr']:.2f} / ours {e['ours']['psnr']:.2f} / "
+                f"OIDN {e['oidn']['psnr']:.2f} dB")
+        page.add_set(ViewerSet(name, [*rows, ViewerRow("reference", ref)], ref, note))
+    cols = ["PSNR dB", "relMSE", "FLIP"]
+    means = Table(["denoiser", "spp", *cols, "s"], better={"PSNR dB": "high", "relMSE": "low", "FLIP": "low"})
+    for spp in spps:
+        m = result["summary"]["scored"][str(spp)]
+        for who, label in (("noisy", "noisy"), ("ours", f"ours ({model})"), ("oidn", "OIDN")):
+            means.rows.append([label, spp, m[f"{who}_psnr"], m[f"{who}_relmse"], m[f"{who}_flip"],
+                               m.get(f"{who}_s")])
+    page.add_section(f"Scored means ({result['summary']['scored']['scenes']} scenes, reference ceiling "
+                     f">= {ceiling:g} dB)", means.html())
+    per_scene = Table(["scene", "spp", "noisy PSNR", "ours PSNR", "OIDN PSNR", "ours relMSE", "OIDN relMSE",
+                       "ours FLIP", "OIDN FLIP", "ours s", "OIDN s"])
+    for name, row in result["scenes"].items():
+        for spp in spps:
+            e = row[str(spp)]
+            per_scene.rows.append([name + ("*" if row["ceiling_db"] < ceiling else ""), spp,
+                                   e["noisy"]["psnr"], e["ours"]["psnr"], e["oidn"]["psnr"],
+                                   e["ours"]["relmse"], e["oidn"]["relmse"], e["ours"]["flip"],
+                                   e["oidn"]["flip"], e["ours_s"], e["oidn_s"]])
+    page.add_section("Every scene", f"<p class='note'>* reference ceiling below {ceiling:g} dB (not in "
+                     "the scored mean)</p>" + per_scene.html())
+    if len(result["models"]) > 1:
+        table = Table(["model", "spp", *cols, "s/MP"], better={"PSNR dB": "high", "relMSE": "low", "FLIP": "low"})
+        for spp in spps:
+            for label, e in result["summary"]["scored"][str(spp)]["models"].items():
+                table.rows.append([label, spp, e["psnr"], e["relmse"], e["flip"], e["s_per_mp"]])
+        page.add_section("Models", table.html())
+    return page
 
 
 def _cores() -> int:
