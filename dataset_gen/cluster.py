@@ -10,10 +10,15 @@ Guarantees, as on one machine:
 - Workers write every file atomically straight into the dataset folder, which must therefore be
   shared storage mounted at the same absolute path on every worker (NFS, a cluster file system).
 - The manifest line of a scene is appended by this client process only, after its task returned.
-- A task that raises is retried ``retries`` times (Dask's ``retries=``); a task whose worker dies
-  is rescheduled on another worker by the scheduler (up to its ``allowed-failures``, 3 by default).
+- Every worker runs the client's code: before anything is submitted, each connected worker
+  reports its :class:`~dataset_gen.code_version.CodeVersion` and one that differs stops the run
+  with a one-line error naming both; a worker that joins later refuses the scenes it is given.
+  A worker whose Mitsuba version or variant differs from the dataset's refuses the scene too.
+- A scene that fails deterministically (:data:`DETERMINISTIC`: bad scene parameters, invalid XML,
+  a refused worker) is reported at once; any other failure is transient and the scene is
+  submitted again, up to ``retries`` times: a lost worker (Dask reruns the task itself up to the
+  scheduler's ``allowed-failures``, 3 by default, then reports ``KilledWorker``), an OSError...
   A scene that still fails is reported; re-running the command retries it and skips finished ones.
-- A worker whose Mitsuba version or variant differs from the dataset's refuses the scene.
 """
 from __future__ import annotations
 
@@ -27,12 +32,18 @@ from importlib import metadata
 from pathlib import Path
 from typing import Any
 
+from dataset_gen.code_version import DIST, CodeVersion, code_version, worker_code_version
 from dataset_gen.config import DatasetConfig, DatasetError
 from dataset_gen.jobs import run_job
+from pipeline.errors import DenoiserError
 
 LOCAL_PREFIX = "local:"
 DEFAULT_RETRIES = 2
 CONNECT_TIMEOUT_S = 30
+
+# Failures that recur whatever the worker: our own errors (SceneError, RenderError, DatasetError...)
+# and what scene generation raises for bad parameters. Not retried.
+DETERMINISTIC: tuple[type[BaseException], ...] = (DenoiserError, ValueError, TypeError)
 
 Job = Callable[[DatasetConfig, int, Path], dict[str, Any]]
 Finish = Callable[[int, "dict[str, Any] | None", "BaseException | None"], None]
@@ -92,10 +103,13 @@ def local_threads(spec: SchedulerSpec) -> int | None:
 
 
 def cluster_job(cfg: DatasetConfig, index: int, folder: Path, threads: int | None,
-                job: Job = run_job) -> dict[str, Any]:
-    """Worker side of one scene task: check this worker's Mitsuba, then ``job(cfg, index, folder)``."""
+                job: Job = run_job, client_code: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Worker side of one scene task: check this worker's code and Mitsuba against the client's
+    (``client_code``: its :class:`CodeVersion` as a dict), then ``job(cfg, index, folder)``."""
     from pipeline.backend import select_variant
 
+    if client_code is not None:
+        check_code(CodeVersion.from_dict(client_code), {_worker_name(): worker_code_version()})
     variant = select_variant()
     version = metadata.version("mitsuba")
     if (version, variant) != (cfg.mitsuba, cfg.variant):
@@ -108,12 +122,40 @@ def cluster_job(cfg: DatasetConfig, index: int, folder: Path, threads: int | Non
     return job(cfg, index, folder)
 
 
+def _worker_name() -> str:
+    try:
+        from distributed import get_worker
+
+        return f"worker {get_worker().address}"
+    except (ImportError, ValueError):  # called outside a Dask worker
+        return "this process"
+
+
+def check_code(client: CodeVersion, workers: dict[str, dict[str, Any]]) -> None:
+    """Raise :class:`DatasetError` (one line, both versions) if a worker's code is not the client's.
+
+    ``workers`` maps a worker's name to its :func:`worker_code_version` dict.
+    """
+    for name, reported in sorted(workers.items()):
+        theirs = CodeVersion.from_dict(reported)
+        if not theirs.same_code(client):
+            raise DatasetError(f"{name} runs {DIST} {theirs}, the client runs {client}; "
+                               f"install the same code on every worker")
+
+
+def is_deterministic(error: BaseException) -> bool:
+    """True for a failure that would recur on any worker (not worth a retry)."""
+    return isinstance(error, DETERMINISTIC)
+
+
 def render_on_cluster(spec: SchedulerSpec, cfg: DatasetConfig, todo: Sequence[int], folder: Path,
                       finish: Finish, retries: int = DEFAULT_RETRIES, job: Job = run_job) -> None:
     """Submit one task per scene of ``todo``; call ``finish(index, record, error)`` as each completes.
 
-    ``finish`` runs in this process, in completion order (it appends the manifest and drives the
-    progress bar). ``job`` defaults to :func:`run_job` (tests pass a wrapper that fails once).
+    Raises :class:`DatasetError` before submitting anything if a connected worker runs other code.
+    A scene whose task fails transiently is submitted again, up to ``retries`` times (see the
+    module doc). ``finish`` runs in this process, in completion order (it appends the manifest and
+    drives the progress bar). ``job`` defaults to :func:`run_job` (tests pass a wrapper that fails).
     """
     if not todo:
         return
@@ -121,14 +163,29 @@ def render_on_cluster(spec: SchedulerSpec, cfg: DatasetConfig, todo: Sequence[in
 
     folder = folder.resolve()
     threads = local_threads(spec)
+    mine = code_version()
     batch = uuid.uuid4().hex[:8]  # unique keys: a long-lived scheduler may remember older runs
+    attempts = dict.fromkeys(todo, 0)
     with connect(spec) as client:
-        futures = {client.submit(cluster_job, cfg, index, folder, threads, job, retries=retries,
-                                 key=f"scene-{index:06d}-{batch}"): index for index in todo}
-        for future in as_completed(futures):
-            index = futures[future]
+        check_code(mine, {f"worker {address}": version
+                          for address, version in client.run(worker_code_version).items()})
+
+        def submit(index: int) -> Any:
+            return client.submit(cluster_job, cfg, index, folder, threads, job, mine.to_dict(), retries=0,
+                                 key=f"scene-{index:06d}-{batch}-{attempts[index]}")
+
+        futures = {submit(index): index for index in todo}
+        pending = as_completed(futures)
+        for future in pending:
+            index = futures.pop(future)
             error = future.exception() if future.status == "error" else None
             if error is None and future.status != "finished":
                 error = DatasetError(f"task {future.status}")
-            finish(index, None if error is not None else future.result(), error)
+            if error is not None and not is_deterministic(error) and attempts[index] < retries:
+                attempts[index] += 1
+                again = submit(index)
+                futures[again] = index
+                pending.add(again)
+            else:
+                finish(index, None if error is not None else future.result(), error)
             future.release()

@@ -1,9 +1,13 @@
-"""generate-dataset on a Dask LocalCluster: same files as the local path, retries, lost workers, resume."""
+"""generate-dataset on a Dask LocalCluster: same files as the local path, retries of transient
+failures only, lost workers, workers with other code refused, resume."""
 from __future__ import annotations
 
 import functools
 import logging
 import os
+import shutil
+import subprocess
+import sys
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -12,11 +16,13 @@ import pytest
 
 from dataset_gen import cluster
 from dataset_gen.cli import main as cli_main
+from dataset_gen.code_version import PACKAGES, ROOT, CodeVersion, code_version, source_hash
 from dataset_gen.config import DatasetConfig, DatasetError
 from dataset_gen.generate import generate_dataset
 from dataset_gen.jobs import run_job
 from dataset_gen.manifest import read_records
 from pipeline.atomic_io import TMP_PREFIX
+from pipeline.errors import SceneError
 
 pytest.importorskip("distributed")
 
@@ -55,10 +61,10 @@ def _attempt(folder: Path, index: int) -> int:
 
 
 def flaky_job(cfg: DatasetConfig, index: int, folder: Path) -> dict[str, Any]:
-    """Scene 0's first attempt raises; scene 1's first attempt kills its worker process."""
+    """Scene 0's first attempt raises an OSError; scene 1's first attempt kills its worker process."""
     attempt = _attempt(folder, index)
     if attempt == 1 and index == 0:
-        raise RuntimeError("transient failure")
+        raise OSError("transient failure (a file server that did not answer)")
     if attempt == 1 and index == 1:
         os._exit(1)  # the worker dies mid-task, as on a lost machine
     return run_job(cfg, index, folder)
@@ -69,6 +75,21 @@ def broken_job(cfg: DatasetConfig, index: int, folder: Path) -> dict[str, Any]:
     if index == 1:
         (folder / "images" / f"{TMP_PREFIX}partial.exr").write_bytes(b"partial")
         raise RuntimeError("broken scene")
+    return run_job(cfg, index, folder)
+
+
+def bad_scene_job(error: type[Exception], cfg: DatasetConfig, index: int, folder: Path) -> dict[str, Any]:
+    """Scene 1 fails as a scene with bad parameters or invalid XML does: every time, anywhere."""
+    _attempt(folder, index)
+    if index == 1:
+        raise error("scene 1: invalid XML (bad parameters)")
+    return run_job(cfg, index, folder)
+
+
+def killing_job(cfg: DatasetConfig, index: int, folder: Path) -> dict[str, Any]:
+    """Scene 0's first attempt kills its worker."""
+    if _attempt(folder, index) == 1 and index == 0:
+        os._exit(1)
     return run_job(cfg, index, folder)
 
 
@@ -158,3 +179,126 @@ def test_cli_scheduler_errors(tmp_path: Path, capsys, monkeypatch) -> None:
     assert cli_main([*args, "--scheduler", "tcp://127.0.0.1:9"]) == 1
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and "cannot reach the Dask scheduler at tcp://127.0.0.1:9" in err
+
+
+# ----------------------------------------------------------------------------- failures and retries
+@pytest.mark.slow
+@pytest.mark.parametrize("error", [SceneError, ValueError])
+def test_deterministic_failure_is_not_retried(scheduler: cluster.SchedulerSpec, tmp_path: Path,
+                                              monkeypatch: pytest.MonkeyPatch, error: type[Exception]) -> None:
+    folder = tmp_path / "ds"
+    monkeypatch.setattr("dataset_gen.generate.render_on_cluster",
+                        functools.partial(cluster.render_on_cluster, job=functools.partial(bad_scene_job, error)))
+    summary = generate_dataset(folder, CFG, scenes=2, scheduler=scheduler)
+    assert summary.done == 1 and len(summary.failed) == 1 and "scene 1: invalid XML" in summary.failed[0]
+    assert len((tmp_path / "attempts" / "1").read_text().split()) == 1  # rendered once, not three times
+    assert sorted(r["index"] for r in read_records(folder)) == [0]
+
+
+def test_failures_are_classified() -> None:
+    from distributed.scheduler import KilledWorker
+
+    for error in (SceneError("x"), DatasetError("x"), ValueError("x"), TypeError("x")):
+        assert cluster.is_deterministic(error), error
+    for error in (OSError("x"), KilledWorker("scene-1", None, 0), RuntimeError("x"), MemoryError()):
+        assert not cluster.is_deterministic(error), error
+
+
+@pytest.mark.slow
+def test_killed_worker_is_submitted_again(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """With allowed-failures 0 the scheduler gives up on the first lost worker (KilledWorker):
+    the client submits the scene again."""
+    import dask
+    from distributed import LocalCluster
+
+    folder = tmp_path / "ds"
+    monkeypatch.setattr("dataset_gen.generate.render_on_cluster",
+                        functools.partial(cluster.render_on_cluster, job=killing_job))
+    with dask.config.set({"distributed.scheduler.allowed-failures": 0}), \
+            LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None,
+                         silence_logs=logging.CRITICAL) as local:
+        summary = generate_dataset(folder, CFG, scenes=1,
+                                   scheduler=cluster.SchedulerSpec(address=local.scheduler_address))
+    assert summary.done == 1 and not summary.failed
+    assert len((tmp_path / "attempts" / "0").read_text().split()) == 2
+
+
+# ----------------------------------------------------------------------------- the workers' code
+def _copy_project(into: Path) -> Path:
+    """The project's packages copied to ``into`` (no .git, no weights): what a worker installs."""
+    for package in PACKAGES:
+        shutil.copytree(ROOT / package, into / package, ignore=shutil.ignore_patterns("__pycache__", "weights"))
+    return into
+
+
+def test_code_version_identifies_the_source(tmp_path: Path) -> None:
+    from importlib import metadata
+
+    here = code_version.__wrapped__()  # now: the tree may have changed since the cached call
+    assert here.package == metadata.version("mc-densenet-denoiser") and len(here.source) == 12
+    copy = _copy_project(tmp_path / "copy")
+    assert code_version(copy).commit is None and code_version(copy).same_code(here)  # no git, same code
+    (copy / "dataset_gen" / "jobs.py").write_text((copy / "dataset_gen" / "jobs.py").read_text() + "# edited\n")
+    assert source_hash(copy) != here.source
+    git = ["git", "-C", str(copy), "-c", "user.name=t", "-c", "user.email=t@t"]
+    subprocess.run([*git, "init", "-q"], check=True)
+    subprocess.run([*git, "add", "."], check=True)
+    subprocess.run([*git, "commit", "-q", "-m", "x"], check=True)
+    committed = code_version.__wrapped__(copy)
+    assert committed.commit is not None and len(committed.commit) == 12 and not committed.modified
+    assert str(committed) == f"{here.package} (git {committed.commit}, source {committed.source})"
+    (copy / "model" / "new.py").write_text("x = 1\n")
+    assert code_version.__wrapped__(copy).modified
+
+
+def test_check_code_names_both_versions_in_one_line() -> None:
+    client = CodeVersion("0.1.0", "aaaaaaaaaaaa", "1234567890ab", False)
+    cluster.check_code(client, {"worker tcp://a:1": client.to_dict()})
+    other = CodeVersion("0.1.0", "bbbbbbbbbbbb")
+    with pytest.raises(DatasetError) as exc:
+        cluster.check_code(client, {"worker tcp://a:1": client.to_dict(), "worker tcp://b:2": other.to_dict()})
+    message = str(exc.value)
+    assert "\n" not in message and message.startswith("worker tcp://b:2 runs mc-densenet-denoiser 0.1.0 "
+                                                      "(source bbbbbbbbbbbb), the client runs 0.1.0 "
+                                                      "(git 1234567890ab, source aaaaaaaaaaaa)")
+    with pytest.raises(DatasetError, match="runs mc-densenet-denoiser unknown"):  # a worker of older code
+        cluster.check_code(client, {"worker tcp://c:3": {}})
+
+
+@pytest.fixture
+def other_code_worker(tmp_path: Path) -> Iterator[cluster.SchedulerSpec]:
+    """A scheduler with one ``dask worker`` process running an edited copy of the project."""
+    from distributed import Client, LocalCluster
+
+    copy = _copy_project(tmp_path / "worker-code")
+    (copy / "scenes" / "registry.py").write_text((copy / "scenes" / "registry.py").read_text() + "# edited\n")
+    with LocalCluster(n_workers=0, processes=True, dashboard_address=None, silence_logs=logging.CRITICAL) as local:
+        worker = subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_worker", local.scheduler_address,
+                                   "--nworkers", "1", "--nthreads", "1", "--no-dashboard"], cwd=copy,
+                                  env={**os.environ, "PYTHONPATH": str(copy)}, stdout=subprocess.DEVNULL,
+                                  stderr=subprocess.DEVNULL)
+        try:
+            with Client(local.scheduler_address) as client:
+                client.wait_for_workers(1, timeout=120)
+            yield cluster.SchedulerSpec(address=local.scheduler_address)
+        finally:
+            worker.terminate()
+            try:
+                worker.wait(30)
+            except subprocess.TimeoutExpired:
+                worker.kill()
+                worker.wait()
+
+
+@pytest.mark.slow
+def test_worker_with_other_code_is_refused_at_submission(other_code_worker: cluster.SchedulerSpec,
+                                                         tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    out = tmp_path / "ds"
+    assert cli_main(["--scenes", "2", "--out", str(out), *CFG_ARGS, "--scheduler", other_code_worker.address]) == 1
+    err = capsys.readouterr().err.strip()
+    mine = code_version()
+    assert "\n" not in err and err.startswith("generate-dataset: worker tcp://"), err
+    assert f"the client runs {mine}" in err and "runs mc-densenet-denoiser 0.1.0 (source " in err
+    assert str(mine.source) not in err.split("the client runs")[0]  # the worker's source hash differs
+    assert not (out / "images").exists() or not list((out / "images").iterdir())  # nothing was rendered
+    assert not read_records(out)
