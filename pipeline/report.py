@@ -135,6 +135,7 @@ def _run_section(page: Page, metrics: dict[str, Any]) -> None:
     guard = metrics.get("noise_guard")
     settings = [["scene", metrics["scene"]], ["resolution", "x".join(map(str, metrics["resolution"]))],
                 ["spp", metrics["spp"]], ["seed", metrics["seed"]],
+                ["reference", _reference_text(metrics.get("reference"))],
                 ["model", f"{model['name']} (sha256 {model['sha256'][:12]})"],
                 ["Mitsuba", f"{metrics['mitsuba']} {metrics['variant']}"],
                 ["noise guard", "off (one-piece render)" if not guard else
@@ -145,8 +146,15 @@ def _run_section(page: Page, metrics: dict[str, Any]) -> None:
         settings.append(["time budget", f"{b['budget_s']:g} s: {b['model']} at {b['spp']} spp, "
                                         f"actual {b['actual_s']:.2f} s"])
     body = Table(["setting", "value"], settings).html() + timings.html()
-    body += details({"model config": model.get("config"), "sanitized": metrics.get("sanitized")})
+    body += details({"model config": model.get("config"), "sanitized": metrics.get("sanitized"),
+                     "render memory": metrics.get("render_memory")})
     page.add_section("Run", body)
+
+
+def _reference_text(reference: dict[str, Any] | None) -> str:
+    if not reference:
+        return "none"
+    return reference["file"] if "file" in reference else f"rendered at {reference['spp']} spp"
 
 
 def write_report(out: Path, metrics: dict[str, Any], images: dict[str, np.ndarray],

@@ -161,6 +161,8 @@ def run(cfg: RunConfig, log: Callable[[str], None] = lambda s: None) -> dict[str
         "sanitized": {"render_nonfinite_pixels": noisy.nonfinite, "denoiser_nonfinite_values":
                       result.nonfinite, "denoiser_negative_values": result.negative},
         "oidn": oidn,
+        "reference": ({"file": str(cfg.reference)} if cfg.reference else
+                      {"spp": cfg.reference_spp} if cfg.reference_spp else None),
         "render_memory": {**render_memory.to_dict(), "budget_mb": cfg.max_memory_mb, "crops": noisy.crops},
     }
     metrics["noise_guard"] = ({"radius": DEFAULT_RADIUS, "pivot_spp": DEFAULT_PIVOT_SPP,
