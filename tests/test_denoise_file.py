@@ -191,3 +191,22 @@ def test_unknown_format_and_broken_pfm(tmp_path: Path, ckpt: Path, capsys: pytes
         assert denoise_main([str(tmp_path / name), str(tmp_path / "o.exr"), "--model", str(ckpt)]) == 1
         err = capsys.readouterr().err.strip()
         assert len(err.splitlines()) == 1 and needle in err and "Traceback" not in err, err
+
+
+def test_exr_written_by_mitsuba_aov_film(tmp_path: Path, ckpt: Path, mi, capsys: pytest.CaptureFixture) -> None:
+    """A film of Mitsuba's aov integrator, as Bitmap.write stores it: bare R,G,B denoised, the
+    inner integrator's image and the AOVs kept."""
+    scene = mi.load_dict({"type": "scene", "integrator": {"type": "aov", "aovs": "albedo:albedo,nn:sh_normal",
+                                                          "image": {"type": "path"}},
+                          "sensor": {"type": "perspective", "film": {"type": "hdrfilm", "width": W, "height": H}},
+                          "ball": {"type": "sphere"}, "sky": {"type": "constant"}})
+    mi.render(scene, spp=4)
+    scene.sensors()[0].film().bitmap().write(str(tmp_path / "aov.exr"))
+    src = read_exr_file(tmp_path / "aov.exr")
+    assert {"", "image", "albedo", "nn"} <= set(src.layers)
+    printed = run(capsys, str(tmp_path / "aov.exr"), str(tmp_path / "out.exr"), "--model", str(ckpt))
+    assert printed["layer"] == ""
+    out = read_exr_file(tmp_path / "out.exr")
+    assert set(out.parts[0].channels) == set(src.parts[0].channels)
+    for name in ("image.R", "albedo.G", "nn.Z"):
+        assert np.array_equal(out.parts[0].channels[name], src.parts[0].channels[name])
