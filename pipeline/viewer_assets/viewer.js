@@ -154,6 +154,7 @@
       off = await paint(v);
     } catch (err) {
       $(".message").textContent = "cannot show this image: " + err;
+      document.body.dataset.busy = "";
       return;
     }
     if (token !== drawToken) return;  // a newer draw started meanwhile
