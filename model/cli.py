@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import shlex
 import sys
 from pathlib import Path
 from typing import Any
@@ -22,7 +23,7 @@ from model.config import PRESETS, ModelConfig, preset
 from model.distributed import RankInfo, ddp_config, launch, rank_from_env, train_distributed
 from model.errors import ConfigError
 from model.train import resume_config, train
-from model.train_config import TrainConfig
+from model.train_config import RESUMABLE_OVERRIDES, TrainConfig
 from pipeline.errors import DenoiserError
 from pipeline.usage import OneLineParser
 
@@ -124,18 +125,48 @@ def config_from_args(args: argparse.Namespace) -> tuple[TrainConfig, bool]:
     return TrainConfig.from_dict(data), False
 
 
+def resume_command(parser: argparse.ArgumentParser, args: argparse.Namespace, nproc: int | None = None,
+                   launcher: str = "train") -> str:
+    """The command that resumes the run ``args`` started: ``train --out RUN --resume`` with the
+    run-control flags that were given (``--nproc``, ``--data``, ``--steps``, ``--threads``...,
+    as given). What the checkpoint holds (``--config``, ``--preset``, the model, batch, LR...)
+    is left out: ``--resume`` refuses or ignores it. ``nproc`` (ranks) replaces ``args.nproc``.
+    """
+    keep = {dest for dest, field in _FLAGS.items() if field in RESUMABLE_OVERRIDES}
+    words = [*shlex.split(launcher), "--out", args.out, "--resume"]
+    nproc = args.nproc if nproc is None else nproc
+    if nproc is not None and nproc > 1:
+        words += ["--nproc", str(nproc)]
+    for action in parser._actions:  # in the parser's order, each flag as the user spells it
+        value = getattr(args, action.dest, None)
+        if action.dest not in keep or value is None:
+            continue
+        words += [action.option_strings[0]] if action.nargs == 0 else [action.option_strings[0], str(value)]
+    return shlex.join(words)
+
+
+def _resume_hint(parser: argparse.ArgumentParser, args: argparse.Namespace, rank: RankInfo | None) -> str:
+    """:func:`resume_command` as seen by this process: the launcher, or a rank under torchrun."""
+    if rank is None or rank.world == rank.local_world:  # one machine: train --nproc N does it
+        return resume_command(parser, args, rank.world if rank is not None else None)
+    return resume_command(parser, args, launcher="torchrun <the same torchrun options> -m model.cli")
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point: returns the process exit code."""
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
     rank: RankInfo | None = None
     try:
         rank = rank_from_env()
+        hint = _resume_hint(parser, args, rank)
         config, resume = config_from_args(args)
         if args.nproc is not None and args.nproc < 1:
             raise ConfigError(f"--nproc must be >= 1, got {args.nproc}")
         if rank is None and args.nproc is not None and args.nproc > 1:
             ddp_config(config, args.nproc, resume)  # refuse before starting any process
-            launch(args.nproc, sys.argv[1:] if argv is None else argv, Path(args.out))
+            launch(args.nproc, sys.argv[1:] if argv is None else argv, Path(args.out), threads=config.threads,
+                   resume_hint=hint, log=lambda line: print(f"train: {line}", flush=True))
             return 0
         from tqdm import tqdm
 
@@ -144,7 +175,7 @@ def main(argv: list[str] | None = None) -> int:
                         disable=not config.progress, file=sys.stderr)
 
         if rank is not None and rank.world > 1:
-            result = train_distributed(config, rank, resume=resume, progress=progress)
+            result = train_distributed(config, rank, resume=resume, progress=progress, resume_hint=hint)
         else:
             result = train(config, resume=resume, progress=progress)
     except DenoiserError as exc:
@@ -156,8 +187,8 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     except KeyboardInterrupt:
         last = Path(args.out) / "last.ckpt"
-        print(f"train: interrupted{f'; resume from {last} with --resume' if last.exists() else ''}",
-              file=sys.stderr)
+        resume_with = f"; resume with: {_resume_hint(parser, args, rank)}" if last.exists() else ""
+        print(f"train: interrupted{resume_with}", file=sys.stderr)
         return 130
     if rank is not None and not rank.primary:
         return 0

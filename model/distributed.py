@@ -21,8 +21,16 @@ What a run with N ranks computes — exactly what one process computes with ``mi
 Rank 0 alone validates, logs, draws the progress bar and writes ``train_config.json``, the
 checkpoints (atomically, as in one process) and ``curves.png``. Every rank holds the whole training
 set in RAM and samples the whole global batch (cheap next to the network; on the prefetch thread).
-If a rank dies, torchrun stops the others; the last complete ``last.ckpt`` stays, and the same
-command with ``--resume`` continues (with any number of ranks, see above).
+If a rank dies, torchrun stops the others; the last complete ``last.ckpt`` stays, and the error
+ends with the command that resumes it (``train --out RUN --resume --nproc N ...``: the original
+command less what the checkpoint holds, see :func:`model.cli.resume_command`); it may also be
+resumed with any other number of ranks, see above.
+
+**Threads per rank** (:func:`choose_threads`): ``--threads`` if given; else ``OMP_NUM_THREADS``
+if the environment sets it (torchrun sets 1 when it is unset and it starts several ranks); else
+the cores this process may run on (its affinity mask: containers, ``taskset``) shared among the
+ranks on this machine. ``train --nproc`` reports its choice and passes it to the ranks as
+``OMP_NUM_THREADS``.
 """
 from __future__ import annotations
 
@@ -33,7 +41,8 @@ import inspect
 import logging
 import os
 import signal
-from collections.abc import Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -79,6 +88,42 @@ def rank_from_env(env: dict[str, str] | None = None) -> RankInfo | None:
     except ValueError:
         raise ConfigError(f"bad torchrun environment (RANK={env['RANK']!r}, "
                           f"WORLD_SIZE={env['WORLD_SIZE']!r})") from None
+
+
+def available_cpus() -> int:
+    """Cores this process may run on: its affinity mask where the OS has one, else all cores."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):  # macOS, Windows
+        return max(1, os.cpu_count() or 1)
+
+
+@dataclass(frozen=True)
+class ThreadChoice:
+    """Torch threads per rank and where the number came from (for the launcher's report)."""
+
+    count: int
+    source: str
+
+    def __str__(self) -> str:
+        return f"{self.count} torch thread{'s' if self.count != 1 else ''} each ({self.source})"
+
+
+def choose_threads(threads: int | None, ranks_here: int, env: Mapping[str, str] | None = None) -> ThreadChoice:
+    """Threads per rank for ``ranks_here`` ranks on this machine: ``threads`` (``--threads``), else
+    an explicit ``OMP_NUM_THREADS`` in ``env`` (default ``os.environ``), else the available cores
+    (:func:`available_cpus`) / ``ranks_here``. Raises :class:`ConfigError` for a bad OMP_NUM_THREADS."""
+    env = os.environ if env is None else env
+    if threads:
+        return ThreadChoice(threads, "--threads or the config's threads")
+    omp = env.get("OMP_NUM_THREADS")
+    if omp is not None:
+        if not omp.strip().isdigit() or int(omp) < 1:
+            raise ConfigError(f"OMP_NUM_THREADS={omp!r} in the environment is not a positive integer")
+        return ThreadChoice(int(omp), f"OMP_NUM_THREADS={int(omp)} in the environment")
+    cpus = available_cpus()
+    return ThreadChoice(max(1, cpus // ranks_here),
+                        f"{cpus} core{'s' if cpus != 1 else ''} available to this process / {ranks_here} ranks")
 
 
 def ddp_config(config: TrainConfig, world: int, resume: bool) -> TrainConfig:
@@ -242,16 +287,17 @@ def _stop_with_launcher() -> None:
 
 
 def train_distributed(config: TrainConfig, rank: RankInfo, resume: bool = False,
-                      progress: ProgressFactory | None = None) -> TrainResult:
+                      progress: ProgressFactory | None = None, resume_hint: str | None = None) -> TrainResult:
     """Train ``config`` as rank ``rank.rank`` of ``rank.world`` (under torchrun); see the module doc.
 
     ``config`` is the single-process config (``ddp_config`` is applied here); ``progress`` is used
     on rank 0 only. Raises what :func:`model.train.train` raises, and :class:`TrainingError` when
-    another rank is lost (the error names the last complete checkpoint).
+    another rank is lost (the error names the last complete checkpoint and ``resume_hint``, the
+    command that resumes the run).
     """
     config = ddp_config(config, rank.world, resume)
     _stop_with_launcher()
-    torch.set_num_threads(config.threads or max(1, (os.cpu_count() or 1) // rank.local_world))
+    torch.set_num_threads(choose_threads(config.threads, rank.local_world).count)
     dist.init_process_group(BACKEND, timeout=TIMEOUT)
     try:
         try:
@@ -265,18 +311,19 @@ def train_distributed(config: TrainConfig, rank: RankInfo, resume: bool = False,
         except RuntimeError as exc:  # gloo: "Connection closed by peer" etc.
             first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
             raise TrainingError(f"rank {rank.rank} lost contact with the other ranks at step {run.step} "
-                                f"({first[:200]}); {last_checkpoint(Path(config.out))}") from None
+                                f"({first[:200]}); {last_checkpoint(Path(config.out), resume_hint)}") from None
     finally:
         dist.destroy_process_group()
 
 
-def last_checkpoint(out: Path) -> str:
-    """One phrase naming the run's last complete checkpoint and how to continue from it."""
+def last_checkpoint(out: Path, resume_hint: str | None = None) -> str:
+    """One phrase naming the run's last complete checkpoint and the command that continues it."""
     try:
         step = read_checkpoint(out / "last.ckpt").header["step"]
     except CheckpointError:
         return f"no complete checkpoint in {out} yet"
-    return f"the last complete checkpoint is {out / 'last.ckpt'} (step {step}); continue with --resume"
+    how = f"resume with: {resume_hint}" if resume_hint else "resume with --out and --resume"
+    return f"the last complete checkpoint is {out / 'last.ckpt'} (step {step}); {how}"
 
 
 def _without_nproc(argv: Sequence[str]) -> list[str]:
@@ -293,25 +340,44 @@ def _without_nproc(argv: Sequence[str]) -> list[str]:
     return out
 
 
-def launch(nproc: int, argv: Sequence[str], out: Path) -> None:
+@contextmanager
+def _environment(name: str, value: str) -> Iterator[None]:
+    """``os.environ[name] = value`` for the block (the ranks inherit it), restored afterwards."""
+    before = os.environ.get(name)
+    os.environ[name] = value
+    try:
+        yield
+    finally:
+        if before is None:
+            os.environ.pop(name, None)
+        else:
+            os.environ[name] = before
+
+
+def launch(nproc: int, argv: Sequence[str], out: Path, threads: int | None = None,
+           resume_hint: str | None = None, log: Callable[[str], None] = lambda s: None) -> None:
     """Run ``python -m model.cli ARGV`` on ``nproc`` local ranks through torchrun's launcher.
 
-    Raises :class:`TrainingError` naming the first rank that failed (torchrun then stopped the
-    others) and the last complete checkpoint in ``out``.
+    ``threads`` is ``--threads``; the ranks' thread count (:func:`choose_threads`) is reported
+    through ``log`` and passed to them as ``OMP_NUM_THREADS`` (an explicit one is kept). Raises
+    :class:`TrainingError` naming the first rank that failed (torchrun then stopped the others),
+    the last complete checkpoint in ``out`` and ``resume_hint``, the command that resumes it.
     """
     from torch.distributed.elastic.multiprocessing.errors import ChildFailedError
     from torch.distributed.run import parse_args, run
 
-    # torchrun would set 1 thread per rank (with a banner); give each rank its share of the cores.
-    os.environ.setdefault("OMP_NUM_THREADS", str(max(1, (os.cpu_count() or 1) // nproc)))
+    choice = choose_threads(threads, nproc)
+    log(f"{nproc} ranks, {choice}")
     logging.getLogger("torch.distributed.elastic").setLevel(logging.CRITICAL)  # we report failures
     args = parse_args(["--standalone", f"--nproc-per-node={nproc}", "--max-restarts=0", "-m", "model.cli"])
     args.training_script_args = _without_nproc(argv)  # set here: torchrun's parser would read them
     try:
-        run(args)
+        # an OMP_NUM_THREADS already set is the user's (kept); torchrun would otherwise set 1 (with a banner)
+        with _environment("OMP_NUM_THREADS", os.environ.get("OMP_NUM_THREADS", str(choice.count))):
+            run(args)
     except ChildFailedError as exc:
         rank, failure = exc.get_first_failure()
         how = (f"was killed by {failure.signal_name()}" if failure.exitcode < 0
                else f"exited with code {failure.exitcode}")
         raise TrainingError(f"rank {rank} (pid {failure.pid}) {how}; all {nproc} ranks were stopped; "
-                            f"{last_checkpoint(out)}") from None
+                            f"{last_checkpoint(out, resume_hint)}") from None

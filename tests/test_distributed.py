@@ -1,14 +1,17 @@
-"""DDP training: 2 ranks match 1 process with micro_batch = batch/2; a lost rank; resume; config rules."""
+"""DDP training: 2 ranks match 1 process with micro_batch = batch/2; a lost rank; resume and the
+hinted resume command; threads per rank; config rules."""
 from __future__ import annotations
 
 import contextlib
 import dataclasses
 import json
 import os
+import shlex
 import signal
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -16,8 +19,8 @@ import pytest
 import torch
 
 from model.checkpoint import read_checkpoint
-from model.cli import main
-from model.distributed import RankInfo, ShardSource, ddp_config, rank_from_env
+from model.cli import build_parser, main, resume_command
+from model.distributed import RankInfo, ShardSource, available_cpus, choose_threads, ddp_config, rank_from_env
 from model.errors import ConfigError
 from model.patches import TrainingPair
 from model.synthetic import write_synthetic_dataset
@@ -67,14 +70,16 @@ def _stop(proc: subprocess.Popen) -> None:
             rank.kill()
 
 
-def _start(*args: str) -> subprocess.Popen:
+def _start(*args: str, env: dict[str, str] | None = None,
+           preexec_fn: Callable[[], None] | None = None) -> subprocess.Popen:
     return subprocess.Popen([sys.executable, "-m", "model.cli", *args], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
+                            stderr=subprocess.PIPE, text=True, env=env, preexec_fn=preexec_fn)
 
 
-def _train(*args: str) -> subprocess.CompletedProcess:
+def _train(*args: str, env: dict[str, str] | None = None,
+           preexec_fn: Callable[[], None] | None = None) -> subprocess.CompletedProcess:
     """``train ARGS`` in a fresh process (as a user runs it), stdout/stderr captured."""
-    proc = _start(*args)
+    proc = _start(*args, env=env, preexec_fn=preexec_fn)
     try:
         out, err = proc.communicate(timeout=TIMEOUT_S)
     finally:
@@ -194,3 +199,107 @@ def test_cli_refuses_bad_ddp_settings(dataset: Path, tmp_path: Path, capsys: pyt
     assert err == ["train: error: batch 6 does not split evenly over 4 ranks"]
     assert main(["--data", str(dataset), "--out", str(tmp_path / "r"), "--config", cfg, "--nproc", "0"]) == 1
     assert "--nproc must be >= 1" in capsys.readouterr().err
+
+
+# ----------------------------------------------------------------------------- the resume hint
+def _run_hint(stderr_line: str) -> subprocess.CompletedProcess:
+    """Run the command an error line ends with (``...; resume with: train ...``) exactly."""
+    assert "resume with: " in stderr_line, stderr_line
+    words = shlex.split(stderr_line.split("resume with: ", 1)[1])
+    assert words[0] == "train", words
+    return _train(*words[1:])
+
+
+def test_resume_command_keeps_what_the_checkpoint_does_not_hold() -> None:
+    parser = build_parser()
+    args = parser.parse_args(["--data", "d", "--out", "runs/a b", "--config", "c.json", "--preset=fast", "--lr", "0.1",
+                              "--steps", "40", "--batch", "64", "--micro-batch", "4", "--nproc=2", "--threads", "1",
+                              "--no-progress", "--ckpt-every", "10"])
+    hint = resume_command(parser, args)
+    assert hint == ("train --out 'runs/a b' --resume --nproc 2 --data d --steps 40 --ckpt-every 10 --threads 1 "
+                    "--no-progress")
+    again = parser.parse_args(shlex.split(hint)[1:])
+    assert again.resume and again.config is None and again.preset is None and again.batch is None
+    assert resume_command(parser, again) == hint  # resuming a resumed run: the same command
+    assert resume_command(parser, args, nproc=1).startswith("train --out 'runs/a b' --resume --data d ")
+
+
+@pytest.mark.slow
+def test_hinted_command_resumes_a_ddp_run_started_with_preset_and_config(dataset: Path, tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    cfg = _config(tmp_path, ckpt_every=2, log_every=2, micro_batch=4)
+    proc = _start("--data", str(dataset), "--out", str(run), "--config", cfg, "--preset", "fast", "--steps", "200",
+                  "--nproc", "2", "--no-progress")
+    try:
+        deadline = time.time() + TIMEOUT_S
+        victim = _rank_pid(proc.pid, 1, deadline)
+        while time.time() < deadline and not (run / "last.ckpt").exists():
+            time.sleep(0.05)
+        os.kill(victim, signal.SIGKILL)
+        _, err = proc.communicate(timeout=TIMEOUT_S)
+    finally:
+        _stop(proc)
+    assert proc.returncode == 1, err
+    last = err.strip().splitlines()[-1]
+    step = read_checkpoint(run / "last.ckpt").header["step"]
+    assert step < 200 and last.endswith(f"resume with: train --out {run} --resume --nproc 2 --data {dataset} "
+                                        "--steps 200 --no-progress"), last
+    done = _run_hint(last)
+    assert done.returncode == 0, done.stderr
+    ckpt = read_checkpoint(run / "last.ckpt")
+    assert ckpt.header["step"] == 200
+    assert ckpt.header["train_config"]["model"]["layers"] == 10  # still the fast preset, not --config's model
+
+
+@pytest.mark.slow
+def test_hinted_command_resumes_an_interrupted_run(dataset: Path, tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    cfg = _config(tmp_path, ckpt_every=2, log_every=2)
+    proc = _start("--data", str(dataset), "--out", str(run), "--config", cfg, "--preset", "fast", "--steps", "200")
+    try:
+        deadline = time.time() + TIMEOUT_S
+        while time.time() < deadline and not (run / "last.ckpt").exists():
+            time.sleep(0.05)
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=TIMEOUT_S)
+    finally:
+        _stop(proc)
+    assert proc.returncode == 130, err
+    last = err.strip().splitlines()[-1]
+    assert last == f"train: interrupted; resume with: train --out {run} --resume --data {dataset} --steps 200"
+    done = _run_hint(last)
+    assert done.returncode == 0, done.stderr
+    assert read_checkpoint(run / "last.ckpt").header["step"] == 200
+
+
+# ----------------------------------------------------------------------------- threads per rank
+def test_threads_follow_the_affinity_mask_and_an_explicit_omp(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {3}, raising=False)
+    monkeypatch.setattr(os, "cpu_count", lambda: 64)
+    assert available_cpus() == 1
+    choice = choose_threads(None, 1, {})
+    assert (choice.count, str(choice)) == (1, "1 torch thread each (1 core available to this process / 1 ranks)")
+    assert choose_threads(None, 2, {"OMP_NUM_THREADS": "3"}).source == "OMP_NUM_THREADS=3 in the environment"
+    assert choose_threads(None, 2, {"OMP_NUM_THREADS": "3"}).count == 3
+    assert choose_threads(5, 2, {"OMP_NUM_THREADS": "3"}).count == 5  # --threads wins
+    for bad in ("0", "x", ""):
+        with pytest.raises(ConfigError, match="OMP_NUM_THREADS"):
+            choose_threads(None, 2, {"OMP_NUM_THREADS": bad})
+
+
+def _one_cpu() -> None:
+    os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not hasattr(os, "sched_setaffinity"), reason="no affinity masks on this OS")
+def test_launcher_reports_threads_from_affinity_and_keeps_an_explicit_omp(dataset: Path, tmp_path: Path) -> None:
+    cfg = _config(tmp_path, threads=0)  # 0: not set
+    base = {k: v for k, v in os.environ.items() if k != "OMP_NUM_THREADS"}
+    args = ("--data", str(dataset), "--config", cfg, "--steps", "1", "--nproc", "2", "--no-progress")
+    pinned = _train("--out", str(tmp_path / "pinned"), *args, env=base, preexec_fn=_one_cpu)  # like taskset -c 0
+    assert pinned.returncode == 0, pinned.stderr
+    assert "train: 2 ranks, 1 torch thread each (1 core available to this process / 2 ranks)" in pinned.stdout
+    explicit = _train("--out", str(tmp_path / "explicit"), *args, env={**base, "OMP_NUM_THREADS": "3"})
+    assert explicit.returncode == 0, explicit.stderr
+    assert "train: 2 ranks, 3 torch threads each (OMP_NUM_THREADS=3 in the environment)" in explicit.stdout
