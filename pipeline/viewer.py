@@ -143,7 +143,7 @@ class Page:
     def html(self) -> str:
         payload = {"sets": [asdict(s) for s in self.sets], "columns": COLUMNS,
                    "colormaps": {name: _colormap(name) for name in ("magma", "viridis")}}
-        stage_h = int(min(900, max(256, self._max_h + 2)))
+        stage_h = int(min(720, max(384, 2 * self._max_h + 2)))  # small images fit at 2x
         parts = {"CSS": _asset("viewer.css").replace("{{STAGE_H}}", str(stage_h)),
                  "TITLE": html.escape(self.title), "SUBTITLE": html.escape(self.subtitle),
                  "VIEWER": VIEWER_BLOCK if self.sets else "", "CONTENT": "\n".join(self.sections),

@@ -1,8 +1,12 @@
 """The example scene shipped as ``scenes/examples/demo.xml`` (used by ``make demo``).
 
-A Cornell box with a glass sphere, a rough gold block and a brick back wall (a generated
-texture, written as ``scenes/examples/textures/bricks.exr``). Regenerate the files with
-``python -m scenes.demo``; tests check the shipped XML still matches :func:`demo_scene`.
+A Cornell box with a glass sphere (a caustic on the floor, light refracted onto the ceiling), a
+rough gold block (glossy) and a brick back wall (a generated texture, written as
+``scenes/examples/textures/bricks.exr``): at 16 spp it shows what a denoiser does with fireflies,
+texture and glossy highlights. ``make demo`` renders it at 256x256 and compares with the shipped
+4096-spp reference ``scenes/examples/demo_reference.exr`` (rendering one would take minutes).
+Regenerate the files with ``python -m scenes.demo`` (``--reference``: the reference too); tests
+check the shipped XML still matches :func:`demo_scene` and the reference the scene.
 """
 from __future__ import annotations
 
@@ -19,6 +23,10 @@ from scenes.xml_export import write_scene
 
 EXAMPLES_DIR = Path(__file__).resolve().parent / "examples"
 DEMO_NAME = "demo.xml"
+REFERENCE_NAME = "demo_reference.exr"
+DEMO_RESOLUTION = (256, 256)  # make demo's --res
+REFERENCE_SPP = 4096
+REFERENCE_SEED = 1_000_003  # not a seed render-and-denoise uses for its noisy render
 BRICKS = "textures/bricks.exr"
 TEXTURE_SEED = 7
 
@@ -50,5 +58,26 @@ def write_demo(folder: Path = EXAMPLES_DIR) -> Path:
     return write_scene(demo_scene(), folder, DEMO_NAME)
 
 
+def write_demo_reference(folder: Path = EXAMPLES_DIR, spp: int = REFERENCE_SPP) -> Path:
+    """Render ``folder/demo.xml`` at :data:`DEMO_RESOLUTION` and ``spp`` samples per pixel into
+    ``folder/demo_reference.exr`` (float16, its settings in the header); return the path."""
+    from importlib import metadata
+
+    from pipeline.exr import write_exr
+    from pipeline.render import render
+
+    result = render(folder / DEMO_NAME, spp, seed=REFERENCE_SEED, resolution=DEMO_RESOLUTION)
+    path = folder / REFERENCE_NAME
+    write_exr(path, result.rgb, half=True,
+              metadata={"scene": DEMO_NAME, "spp": spp, "seed": REFERENCE_SEED,
+                        "mitsuba": metadata.version("mitsuba"), "variant": result.variant,
+                        "command": f"python -m scenes.demo --reference (spp {spp})"})
+    return path
+
+
 if __name__ == "__main__":
+    import sys
+
     print(write_demo())
+    if "--reference" in sys.argv[1:]:
+        print(write_demo_reference())

@@ -150,15 +150,15 @@ def test_keys_flip_images_in_place_and_zoom_shows_pixel_blocks(chromium: str, re
         assert view.image().mean() > shots["ours"].mean() + 10
 
         view.press("[")
-        while view.state()["zoom"] < 16:
+        while view.state()["zoom"] < 32:
             view.press("+")
         state = view.state()
-        assert state["zoom"] == 16
+        assert state["zoom"] == 32
         rect = browser.eval("(() => { const c = document.querySelector('canvas.stage');"
                             " const r = c.getBoundingClientRect();"
                             " return [r.left + c.clientLeft, r.top + c.clientTop, c.clientWidth, c.clientHeight]; })()")
         shot = browser.screenshot({"x": rect[0], "y": rect[1], "width": rect[2], "height": rect[3]}).astype(int)
-        z = 16
+        z = 32
         x0 = state["panX"] % z
         y0 = state["panY"] % z
         whole_w, whole_h = (rect[2] - x0) // z, (rect[3] - y0) // z
@@ -168,7 +168,7 @@ def test_keys_flip_images_in_place_and_zoom_shows_pixel_blocks(chromium: str, re
                                " return [r.right, r.bottom]; })()")  # the label over the top-left corner
         free = np.ones((whole_h, whole_w), bool)
         free[:int((caption[1] - rect[1] - y0) // z) + 1, :int((caption[0] - rect[0] - x0) // z) + 1] = False
-        # every screen block of 16x16 pixels is one colour: one image pixel, no smoothing
+        # every screen block of 32x32 pixels is one colour: one image pixel, no smoothing
         uniform = (blocks == blocks[:, :1, :, :1, :]).all(axis=(1, 3, 4))
         assert uniform[free].all() and free.sum() > 0.9 * free.size
         colours = {tuple(c) for c in blocks[:, 0, :, 0, :][free].reshape(-1, 3)}
