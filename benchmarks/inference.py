@@ -35,7 +35,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from model.checkpoint import save_checkpoint  # noqa: E402
 from model.config import preset  # noqa: E402
-from model.network import build_model  # noqa: E402
+from model.architectures import build_model  # noqa: E402
 from pipeline.denoise import Denoiser  # noqa: E402
 from pipeline.oidn import oidn_available, oidn_denoise  # noqa: E402
 

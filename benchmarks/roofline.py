@@ -38,7 +38,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from model.config import preset  # noqa: E402
-from model.network import build_model  # noqa: E402
+from model.architectures import build_model  # noqa: E402
 
 RESULTS = ROOT / "benchmarks" / "results"
 PATCH, BATCH = 28, 64

@@ -60,7 +60,7 @@ from dataset_gen.cluster import SchedulerSpec, local_threads  # noqa: E402
 from dataset_gen.config import DatasetConfig  # noqa: E402
 from dataset_gen.generate import GenerateSummary, generate_dataset  # noqa: E402
 from model.config import PRESETS  # noqa: E402
-from model.network import build_model, count_parameters  # noqa: E402
+from model.architectures import build_model, count_parameters  # noqa: E402
 from model.synthetic import write_synthetic_dataset  # noqa: E402
 from scenes.registry import FAMILIES  # noqa: E402
 

@@ -34,7 +34,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from model.config import preset  # noqa: E402
-from model.network import build_model, count_parameters  # noqa: E402
+from model.architectures import build_model, count_parameters  # noqa: E402
 from model.patches import PatchConfig, TrainingPair, sample_batch  # noqa: E402
 from model.loss import denoising_loss  # noqa: E402
 from model.step import NonFiniteGuard, train_step  # noqa: E402

@@ -24,7 +24,8 @@ import torch
 
 from model.config import ModelConfig
 from model.errors import CheckpointError, ConfigError
-from model.network import Denoiser, build_model
+from model.network import Denoiser
+from model.architectures import build_model
 from pipeline.atomic_io import atomic_path
 
 FORMAT = "mc-densenet-denoiser-checkpoint"

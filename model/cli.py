@@ -19,7 +19,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from model.config import PRESETS, ModelConfig, preset
+from model.config import ARCHS, PRESETS, ModelConfig, preset
 from model.distributed import RankInfo, ddp_config, launch, rank_from_env, train_distributed
 from model.errors import ConfigError
 from model.train import resume_config, train
@@ -34,9 +34,11 @@ _FLAGS = {  # argparse dest -> TrainConfig field
     "prefetch": "prefetch", "progress": "progress", "max_bad_steps": "max_bad_steps",
     "micro_batch": "micro_batch", "init_from": "init_from", "lr_decay": "lr_decay",
     "lr_decay_every": "lr_decay_every", "converged_pairs": "converged_pairs",
-    "lr_warmup": "lr_warmup",
+    "lr_warmup": "lr_warmup", "lr_cosine_steps": "lr_cosine_steps", "lr_final": "lr_final",
+    "noise_dropout": "noise_dropout", "gradient_weight": "gradient_weight", "max_scenes": "max_scenes",
 }
-_MODEL_FLAGS = ("arch", "transfer", "output", "aux_inputs")
+_MODEL_FLAGS = ("arch", "transfer", "output", "aux_inputs", "noise_input", "levels", "layers", "growth",
+                "init_features")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -50,7 +52,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--resume", action="store_true", default=False, help="continue the run in --out")
     p.add_argument("--steps", type=int, help="total optimiser steps (default 100000)")
     p.add_argument("--preset", choices=sorted(PRESETS), help="model size preset (default paper)")
-    p.add_argument("--arch", choices=["densenet", "plaincnn"])
+    p.add_argument("--arch", choices=list(ARCHS))
+    p.add_argument("--levels", type=int, help="multi-scale archs: resolutions below the half-resolution stem")
+    p.add_argument("--layers", type=int, help="dense layers (flat: in the block; multi-scale: per block)")
+    p.add_argument("--growth", type=int, help="growth rate k")
+    p.add_argument("--width", dest="init_features", type=int, help="channels of the first conv / stem")
+    p.add_argument("--noise-input", dest="noise_input", action="store_const", const=True,
+                   help="also feed the render's noise (needs a dataset made with --variance)")
+    p.add_argument("--noise-dropout", type=float,
+                   help="share of patches whose noise channels are hidden (default 0.25)")
     p.add_argument("--transfer", choices=["log", "pu"])
     p.add_argument("--output", choices=["residual", "direct"])
     p.add_argument("--aux", dest="aux_inputs", action="store_const", const=True, help="also feed albedo+normal")
@@ -65,6 +75,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--lr-decay", type=float, help="LR factor per --lr-decay-every steps (default 0.9)")
     p.add_argument("--lr-warmup", type=int, help="steps of linear LR warm-up (default 0)")
     p.add_argument("--lr-decay-every", type=int, help="steps per LR decay (default 10000)")
+    p.add_argument("--lr-cosine-steps", type=int,
+                   help="cosine LR decay over this many steps instead of the step schedule")
+    p.add_argument("--lr-final", type=float, help="LR at the end of the cosine, as a share of --lr (0.01)")
+    p.add_argument("--gradient-weight", type=float,
+                   help="share of the gradient L1 in the loss (default 0.1, the paper's; 0 = plain L1)")
+    p.add_argument("--max-scenes", type=int, help="use only the dataset's scenes with index below this")
     p.add_argument("--micro-batch", type=int,
                    help="accumulate gradients over chunks of this size (faster; BatchNorm per chunk)")
     p.add_argument("--seed", type=int)
@@ -108,7 +124,8 @@ def config_from_args(args: argparse.Namespace) -> tuple[TrainConfig, bool]:
     """(TrainConfig, resume?) from parsed flags; raises :class:`ConfigError` on conflicts."""
     flags = {field: getattr(args, dest) for dest, field in _FLAGS.items() if getattr(args, dest) is not None}
     if args.resume:
-        given = [f"--{k.replace('_', '-')}" for k in ("config", "preset", "patch", *_MODEL_FLAGS)
+        names = {"aux_inputs": "aux", "init_features": "width"}
+        given = [f"--{names.get(k, k).replace('_', '-')}" for k in ("config", "preset", "patch", *_MODEL_FLAGS)
                  if getattr(args, k) is not None]
         if given:
             raise ConfigError(f"{', '.join(given)} cannot be combined with --resume "

@@ -25,7 +25,11 @@ from typing import Any
 
 from model.errors import ConfigError
 
-ARCHS = ("densenet", "plaincnn")
+ARCHS = ("densenet", "plaincnn", "dense_unet", "plain_unet")
+FLAT_ARCHS = ("densenet", "plaincnn")
+UNET_ARCHS = ("dense_unet", "plain_unet")
+MAX_LEVELS = 6
+NOISE_CHANNELS = 4  # transfer-space noise std per RGB channel + "the noise is known" flag
 OUTPUTS = ("residual", "direct")
 TRANSFERS = ("log", "pu")
 
@@ -40,6 +44,14 @@ class ModelConfig:
     linear radiance before the network (see :mod:`model.transfer`). ``output``: ``"residual"``
     predicts a correction added to the transfer-space input, ``"direct"`` the clean image itself.
     ``aux_inputs``: also feed albedo (RGB, [0,1]) and normal (XYZ, [-1,1]) -> 15 input channels.
+    ``noise_input``: also feed what a render made of two halves tells about its noise
+    (:mod:`model.noise_input`: per RGB channel how far one standard deviation of the mean moves the
+    pixel in transfer space, and a flag that is 1 where the variance is known) -> 4 more channels.
+    ``levels``: for the multi-scale archs (``dense_unet``, ``plain_unet``, :mod:`model.unet`) the
+    number of resolutions below the half-resolution stem (the image is processed at 1/2 .. 1/2^(levels+1));
+    0 for the flat archs. For the multi-scale archs ``layers`` counts the layers of each of the
+    2*levels+1 blocks, ``init_features`` is the stem's width and ``growth`` the growth rate at
+    half resolution (:mod:`model.unet` says how widths grow with depth).
     Defaults: the paper's sizes, log transfer, residual output (the network predicts only the
     correction, which starts near the identity).
     """
@@ -52,6 +64,8 @@ class ModelConfig:
     transfer: str = "log"
     output: str = "residual"
     aux_inputs: bool = False
+    levels: int = 0
+    noise_input: bool = False
 
     def __post_init__(self) -> None:
         if self.arch not in ARCHS:
@@ -64,18 +78,42 @@ class ModelConfig:
             value = getattr(self, name)
             if not isinstance(value, int) or isinstance(value, bool) or not 1 <= value <= 4096:
                 raise ConfigError(f"model {name} must be an integer in 1..4096, got {value!r}")
-        if not isinstance(self.aux_inputs, bool):
-            raise ConfigError(f"model aux_inputs must be true or false, got {self.aux_inputs!r}")
+        for name in ("aux_inputs", "noise_input"):
+            if not isinstance(getattr(self, name), bool):
+                raise ConfigError(f"model {name} must be true or false, got {getattr(self, name)!r}")
+        if not isinstance(self.levels, int) or isinstance(self.levels, bool):
+            raise ConfigError(f"model levels must be an integer, got {self.levels!r}")
+        if self.arch in UNET_ARCHS and not 1 <= self.levels <= MAX_LEVELS:
+            raise ConfigError(f"model levels must be in 1..{MAX_LEVELS} for {self.arch}, got {self.levels}")
+        if self.arch in FLAT_ARCHS and self.levels != 0:
+            raise ConfigError(f"model levels must be 0 for the flat {self.arch}, got {self.levels}")
+
+    @property
+    def multiscale(self) -> bool:
+        """True for the encoder/decoder archs of :mod:`model.unet`."""
+        return self.arch in UNET_ARCHS
 
     @property
     def in_channels(self) -> int:
-        """Network input channels: RGB + 6 gradient channels (+ albedo + normal)."""
-        return 15 if self.aux_inputs else 9
+        """Network input channels: RGB + 6 gradient channels (+ albedo + normal) (+ noise)."""
+        return self.image_channels + 6
 
     @property
     def image_channels(self) -> int:
-        """Channels of the image tensor the model takes: RGB (+ albedo + normal) = 3 or 9."""
-        return 9 if self.aux_inputs else 3
+        """Channels of the image tensor the model takes: RGB (+ albedo RGB + normal XYZ)
+        (+ noise RGB + flag): 3, 7, 9 or 13, in that order."""
+        return 3 + 6 * self.aux_inputs + NOISE_CHANNELS * self.noise_input
+
+    @property
+    def color_groups(self) -> tuple[int, ...]:
+        """First channels of the image tensor's colour triplets (RGB, albedo, noise RGB): the
+        channels an RGB permutation (augmentation) must permute alike."""
+        return (0,) + ((3,) if self.aux_inputs else ()) + ((self.noise_start,) if self.noise_input else ())
+
+    @property
+    def noise_start(self) -> int:
+        """Index of the first noise channel in the image tensor (the 4 noise channels come last)."""
+        return self.image_channels - NOISE_CHANNELS
 
     def to_dict(self) -> dict[str, Any]:
         """Plain JSON-ready dict of all fields."""
@@ -98,6 +136,13 @@ PRESETS: dict[str, ModelConfig] = {
     "balanced": ModelConfig(layers=20, growth=8, init_features=16, transfer="pu"),
     "high": ModelConfig(layers=30, growth=8, init_features=16, transfer="pu"),
     "paper": ModelConfig(layers=20, growth=12, init_features=24, transfer="pu"),
+    # the multi-scale family (model.unet): 2 dense layers per block, 5 resolutions (1/2 .. 1/32)
+    "u-fast": ModelConfig(arch="dense_unet", levels=4, layers=2, growth=8, init_features=24, transfer="pu",
+                          noise_input=True),
+    "u-balanced": ModelConfig(arch="dense_unet", levels=4, layers=2, growth=12, init_features=32, transfer="pu",
+                              noise_input=True),
+    "u-high": ModelConfig(arch="dense_unet", levels=4, layers=3, growth=16, init_features=48, transfer="pu",
+                          noise_input=True),
 }
 
 

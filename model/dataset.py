@@ -24,6 +24,7 @@ import torch
 
 from dataset_gen.naming import image_name
 from model.errors import DatasetError
+from model.noise_input import noise_channels
 from model.patches import TrainingPair
 from model.transfer import HDR_MAX, TransferFunction
 from pipeline.errors import ExrError
@@ -35,24 +36,28 @@ CONVERGED_SPP = 0  # TrainingPair.spp of a pair whose input is the reference its
 
 @dataclass(frozen=True)
 class SceneRecord:
-    """One manifest line: scene index, split, rendered spp levels and aux buffers."""
+    """One manifest line: scene index, split, rendered spp levels, aux buffers and the spp
+    levels that have a variance image (``generate-dataset --variance``)."""
 
     index: int
     split: str
     spp: tuple[int, ...]
     aovs: tuple[str, ...]
+    variance_spp: tuple[int, ...] = ()
 
 
 @dataclass(frozen=True)
 class ValImage:
-    """A whole validation image: linear radiance HxWx3 float32 (noisy and reference) and aux
-    (HxWx6: albedo RGB then normal XYZ) or None."""
+    """A whole validation image: linear radiance HxWx3 float32 (noisy and reference), aux
+    (HxWx6: albedo RGB then normal XYZ) or None, and the noisy image's HxWx3 variance estimate
+    (None where the dataset has none, or the model does not use it)."""
 
     scene: int
     spp: int
     noisy: np.ndarray
     ref: np.ndarray
     aux: np.ndarray | None
+    variance: np.ndarray | None = None
 
 
 def read_dataset_config(root: Path) -> dict[str, Any]:
@@ -78,7 +83,8 @@ def _record(line: str, path: Path, number: int) -> SceneRecord:
     try:
         obj = json.loads(line)
         record = SceneRecord(int(obj["index"]), str(obj["split"]),
-                             tuple(int(s) for s in obj["spp"]), tuple(str(a) for a in obj.get("aovs", [])))
+                             tuple(int(s) for s in obj["spp"]), tuple(str(a) for a in obj.get("aovs", [])),
+                             tuple(int(s) for s in obj.get("variance_spp", [])))
     except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
         raise DatasetError(f"{path}:{number}: malformed manifest line ({exc})") from None
     if record.index < 0 or record.split not in ("train", "val"):
@@ -107,6 +113,8 @@ def _read_rgb(root: Path, index: int, spp: int | None, kind: str) -> np.ndarray:
         raise DatasetError(str(exc)) from None
     if kind == "hdr":
         rgb = np.clip(np.nan_to_num(rgb, nan=0.0, posinf=HDR_MAX, neginf=0.0), 0.0, HDR_MAX)
+    elif kind == "var":  # a variance: up to HDR_MAX^2
+        rgb = np.clip(np.nan_to_num(rgb, nan=0.0, posinf=HDR_MAX**2, neginf=0.0), 0.0, HDR_MAX**2)
     else:
         rgb = np.nan_to_num(rgb, nan=0.0, posinf=0.0, neginf=0.0)
     return rgb.astype(np.float32)
@@ -125,40 +133,59 @@ def _encode(transfer: TransferFunction, rgb: np.ndarray) -> np.ndarray:
     return transfer.forward(torch.from_numpy(rgb)).numpy()
 
 
+def _variance(root: Path, record: SceneRecord, spp: int) -> np.ndarray | None:
+    return _read_rgb(root, record.index, spp, "var") if spp in record.variance_spp else None
+
+
 def load_training_pairs(root: Path, records: Iterable[SceneRecord], transfer: TransferFunction,
                         aux: bool, progress: Callable[[int], Any] | None = None,
-                        converged: bool = False) -> list[TrainingPair]:
+                        converged: bool = False, noise: bool = False) -> list[TrainingPair]:
     """Every (scene, spp) of ``records`` as a transfer-space :class:`TrainingPair` held in RAM.
 
     With ``converged`` each scene also gets a pair whose input is its reference itself (``spp``
-    = :data:`CONVERGED_SPP`; aux buffers of its highest spp): it teaches the model to leave an
-    already converged image as it is instead of smoothing it like a noisy one.
+    = :data:`CONVERGED_SPP`; aux buffers of its highest spp; noise channels saying "variance 0"):
+    it teaches the model to leave an already converged image as it is instead of smoothing it
+    like a noisy one. With ``noise`` the input carries the 4 channels of
+    :func:`model.noise_input.noise_channels` last (unknown where a level has no variance image).
     """
     pairs = []
     for record in records:
-        ref = _encode(transfer, _read_rgb(root, record.index, None, "hdr"))
+        ref_linear = _read_rgb(root, record.index, None, "hdr")
+        ref = _encode(transfer, ref_linear)
         for spp in record.spp:
-            noisy = _encode(transfer, _read_rgb(root, record.index, spp, "hdr"))
+            linear = _read_rgb(root, record.index, spp, "hdr")
+            noisy = _encode(transfer, linear)
             if noisy.shape != ref.shape:
                 raise DatasetError(f"scene {record.index}: {spp}spp image {noisy.shape} differs from "
                                    f"reference {ref.shape}")
+            parts = [noisy]
             if aux:
-                noisy = np.concatenate([noisy, _aux(root, record, spp)], axis=-1)
-            pairs.append(TrainingPair(np.ascontiguousarray(noisy), ref, record.index, spp))
+                parts.append(_aux(root, record, spp))
+            if noise:
+                parts.append(noise_channels(linear, _variance(root, record, spp), transfer))
+            pairs.append(TrainingPair(np.ascontiguousarray(np.concatenate(parts, axis=-1)), ref, record.index, spp))
         if converged and record.spp:
-            clean = np.concatenate([ref, _aux(root, record, max(record.spp))], axis=-1) if aux else ref
-            pairs.append(TrainingPair(np.ascontiguousarray(clean), ref, record.index, CONVERGED_SPP))
+            parts = [ref]
+            if aux:
+                parts.append(_aux(root, record, max(record.spp)))
+            if noise:
+                parts.append(noise_channels(ref_linear, np.zeros_like(ref_linear), transfer))
+            pairs.append(TrainingPair(np.ascontiguousarray(np.concatenate(parts, axis=-1)), ref, record.index,
+                                      CONVERGED_SPP))
         if progress is not None:
             progress(1)
     return pairs
 
 
-def load_val_images(root: Path, records: Iterable[SceneRecord], aux: bool) -> list[ValImage]:
-    """Every (scene, spp) of ``records`` as linear-radiance :class:`ValImage` held in RAM."""
+def load_val_images(root: Path, records: Iterable[SceneRecord], aux: bool,
+                    noise: bool = False) -> list[ValImage]:
+    """Every (scene, spp) of ``records`` as linear-radiance :class:`ValImage` held in RAM (with
+    its variance image where the dataset has one and ``noise`` asks for it)."""
     images = []
     for record in records:
         ref = _read_rgb(root, record.index, None, "hdr")
         for spp in record.spp:
             images.append(ValImage(record.index, spp, _read_rgb(root, record.index, spp, "hdr"), ref,
-                                   _aux(root, record, spp) if aux else None))
+                                   _aux(root, record, spp) if aux else None,
+                                   _variance(root, record, spp) if noise else None))
     return images

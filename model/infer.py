@@ -2,10 +2,16 @@
 
 exposure (an image whose log-average luminance lies outside the training data's range is scaled
 by a power of two towards the training median, undone at the end) -> sanitise (NaN/Inf/negative
--> 0, > HDR_MAX clamped) -> transfer -> network on core tiles with a margin of the receptive-field
-radius (exact: :mod:`pipeline.tiling`) -> clamp to [0, 1] in transfer space (radiance 0..HDR_MAX,
-so a wild output cannot overflow to Inf) -> inverse transfer -> undo the exposure. All of it tile
-by tile: no whole-image temporaries besides the output.
+-> 0, > HDR_MAX clamped) -> transfer (+ the noise channels of :mod:`model.noise_input` for a model
+that takes them) -> network on core tiles with a margin of the receptive-field radius, on the
+network's alignment grid (exact: :mod:`pipeline.tiling`) -> clamp to [0, 1] in transfer space
+(radiance 0..HDR_MAX, so a wild output cannot overflow to Inf) -> inverse transfer -> undo the
+exposure. All of it tile by tile: no whole-image temporaries besides the output.
+
+With a variance and ``skip_below``, the parts of the image whose noise is already below that
+level (transfer-space standard deviation, per 64-px cell) are not run through the network: they
+come back as the (sanitised) render, and the network runs on the smallest aligned rectangle that
+holds every noisy cell, with its full margin, so its output there is unchanged.
 Validation during training and :class:`pipeline.denoise.Denoiser` both call :func:`denoise_image`.
 """
 from __future__ import annotations
@@ -15,16 +21,15 @@ from collections.abc import Callable
 
 import numpy as np
 import torch
+from torch import nn
 
+from model.architectures import alignment, receptive_radius
 from model.config import ModelConfig
-from model.network import Denoiser
-from model.transfer import HDR_MAX, get_transfer
-from pipeline.tiling import run_tiled
+from model.noise_input import noise_channels
+from model.transfer import HDR_MAX, TransferFunction, get_transfer
+from pipeline.tiling import Tile, run_windows
 
-
-def receptive_radius(config: ModelConfig) -> int:
-    """Pixels on each side an output pixel depends on: gradient 1 + 7x7 conv 3 + L + tail 1."""
-    return 1 + 3 + config.layers + 1
+SKIP_CELL = 64  # pixels per side of the cells the skip test looks at (a multiple of every alignment <= 64)
 
 
 # Log-average luminance (geometric mean over pixels with luminance > 0; a firefly barely moves it)
@@ -63,46 +68,98 @@ def sanitize(color: np.ndarray) -> np.ndarray:
                                  neginf=0.0), 0.0, HDR_MAX)
 
 
-def denoise_image(model: Denoiser, color: np.ndarray, aux: np.ndarray | None = None,
-                  core: int = 256, progress: Callable[[int, int], None] | None = None) -> np.ndarray:
-    """Denoise HxWx3 linear radiance -> HxWx3 float32 linear radiance >= 0 (at most HDR_MAX divided
-    by :func:`exposure_scale`, i.e. HDR_MAX unless the image is unusually bright).
-
-    ``aux``: HxWx6 (albedo RGB in [0,1], normal XYZ in [-1,1]); required iff the model was built
-    with ``aux_inputs``. ``core``: tile core side in pixels (memory bound; the result does not
-    depend on it). The model runs in eval mode; its previous mode is restored.
-    """
-    config = model.config
+def _check_inputs(config: ModelConfig, color: np.ndarray, aux: np.ndarray | None, variance: np.ndarray | None) -> None:
     if config.aux_inputs != (aux is not None):
         raise ValueError("aux buffers are required by this model" if config.aux_inputs
                          else "this model takes no aux buffers")
     if color.ndim != 3 or color.shape[2] != 3 or min(color.shape[:2]) < 1:
         raise ValueError(f"color must be HxWx3, got shape {color.shape}")
-    transfer = get_transfer(config.transfer)
-    image = color  # sanitised and transferred tile by tile: no whole-image float64 temporaries
-    if aux is not None:
-        if aux.shape != color.shape[:2] + (6,):
-            raise ValueError(f"aux must be HxWx6 like the image, got shape {aux.shape}")
-        aux = np.nan_to_num(np.asarray(aux, dtype=np.float32), nan=0.0, posinf=0.0, neginf=0.0)
-        image = np.concatenate([np.asarray(color, dtype=np.float32), aux], axis=2)
-    scale = exposure_scale(color)
+    if aux is not None and aux.shape != color.shape[:2] + (6,):
+        raise ValueError(f"aux must be HxWx6 like the image, got shape {aux.shape}")
+    if variance is not None and variance.shape != color.shape:
+        raise ValueError(f"variance must be HxWx3 like the image, got shape {variance.shape}")
 
-    def net(window: np.ndarray) -> np.ndarray:
-        rgb = window[..., :3]
-        if scale != 1.0:
-            with np.errstate(over="ignore"):  # a huge value may overflow to Inf: sanitised below
-                rgb = np.asarray(rgb, np.float32) * np.float32(scale)
-        x = torch.cat([transfer.forward(torch.from_numpy(sanitize(rgb))),
-                       torch.from_numpy(np.asarray(window[..., 3:], np.float32))], dim=2)
+
+def _scaled(rgb: np.ndarray, scale: float) -> np.ndarray:
+    """Sanitised float32 radiance times the exposure ``scale``."""
+    if scale != 1.0:
+        with np.errstate(over="ignore"):  # a huge value may overflow to Inf: sanitised below
+            rgb = np.asarray(rgb, np.float32) * np.float32(scale)
+    return sanitize(rgb)
+
+
+def noisy_region(color: np.ndarray, variance: np.ndarray, transfer: TransferFunction, scale: float,
+                 threshold: float, align: int) -> tuple[int, int, int, int] | None:
+    """The smallest rectangle (y0, y1, x0, x1), on ``SKIP_CELL``-px cells (multiples of ``align``),
+    that holds every cell whose RMS transfer-space noise (:func:`model.noise_input.noise_channels`)
+    is at least ``threshold``; None when no cell is. Computed one row of cells at a time."""
+    height, width = color.shape[:2]
+    cell = max(align, SKIP_CELL // align * align)
+    rows: list[int] = []
+    cols: set[int] = set()
+    for y in range(0, height, cell):
+        strip = noise_channels(_scaled(color[y:y + cell], scale),
+                               np.asarray(variance[y:y + cell], np.float32) * np.float32(scale * scale),
+                               transfer)[..., :3]
+        power = (strip * strip).sum(axis=2)
+        for x in range(0, width, cell):
+            if float(power[:, x:x + cell].mean()) >= threshold * threshold:
+                rows.append(y)
+                cols.add(x)
+    if not rows:
+        return None
+    return min(rows), min(height, max(rows) + cell), min(cols), min(width, max(cols) + cell)
+
+
+def denoise_image(model: nn.Module, color: np.ndarray, aux: np.ndarray | None = None,
+                  core: int = 256, progress: Callable[[int, int], None] | None = None,
+                  variance: np.ndarray | None = None, skip_below: float | None = None) -> np.ndarray:
+    """Denoise HxWx3 linear radiance -> HxWx3 float32 linear radiance >= 0 (at most HDR_MAX divided
+    by :func:`exposure_scale`, i.e. HDR_MAX unless the image is unusually bright).
+
+    ``model``: a network of :mod:`model.architectures` or its folded inference copy (anything
+    with the ``config`` of the network). ``aux``: HxWx6 (albedo RGB in [0,1], normal XYZ in
+    [-1,1]); required iff the model was built with ``aux_inputs``. ``variance``: HxWx3 variance
+    estimate of the image's mean (two halves); fed to a model with ``noise_input`` (without it
+    such a model is told the noise is unknown) and used by ``skip_below`` (see the module
+    docstring). ``core``: tile core side in pixels (memory bound; the result does not depend on
+    it). The model runs in eval mode; its previous mode is restored.
+    """
+    config = model.config
+    _check_inputs(config, color, aux, variance)
+    transfer = get_transfer(config.transfer)
+    if aux is not None:
+        aux = np.nan_to_num(np.asarray(aux, dtype=np.float32), nan=0.0, posinf=0.0, neginf=0.0)
+    scale = exposure_scale(color)
+    align = alignment(config)
+    height, width = color.shape[:2]
+    region = None
+    out = None
+    if variance is not None and skip_below is not None:
+        region = noisy_region(color, variance, transfer, scale, skip_below, align)
+        out = sanitize(color)
+        if region is None:
+            return out
+
+    def net(t: Tile) -> np.ndarray:
+        rgb = _scaled(color[t.wy0:t.wy1, t.wx0:t.wx1], scale)
+        parts = [transfer.forward(torch.from_numpy(rgb))]
+        if aux is not None:
+            parts.append(torch.from_numpy(aux[t.wy0:t.wy1, t.wx0:t.wx1]))
+        if config.noise_input:
+            var = None if variance is None else \
+                np.asarray(variance[t.wy0:t.wy1, t.wx0:t.wx1], np.float32) * np.float32(scale * scale)
+            parts.append(torch.from_numpy(noise_channels(rgb, var, transfer)))
+        x = torch.cat(parts, dim=2)
         y = model(x.permute(2, 0, 1).contiguous()[None])[0]
-        out = transfer.inverse(torch.nan_to_num(y, nan=0.0).clamp(0.0, 1.0)).permute(1, 2, 0).numpy()
-        return out if scale == 1.0 else out / np.float32(scale)
+        result = transfer.inverse(torch.nan_to_num(y, nan=0.0).clamp(0.0, 1.0)).permute(1, 2, 0).numpy()
+        return result if scale == 1.0 else result / np.float32(scale)
 
     was_training = model.training
     model.eval()
     try:
         with torch.inference_mode():
-            out = run_tiled(net, image, core, receptive_radius(config), progress)
+            out = run_windows(net, height, width, core, receptive_radius(config), progress, align, out, region)
     finally:
         model.train(was_training)
     return out.astype(np.float32, copy=False)

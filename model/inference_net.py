@@ -96,24 +96,38 @@ def relu_affine_as_clamp(scale: torch.Tensor, shift: torch.Tensor) -> tuple[torc
 
 
 class _ClampConv1x1(nn.Module):
-    """A bottleneck's BN-ReLU-Conv1x1-BN-ReLU in two passes: a clamp, then a conv with bias + ReLU.
+    """A BN-ReLU-Conv1x1 (-BN-ReLU) in two passes: a clamp, then a conv with bias (+ ReLU).
 
     ``relu(s*x + t) = s*clamp(x, lo, hi) + c`` (:func:`relu_affine_as_clamp`), and a 1x1 conv has
     no padding, so ``W @ (s*clamp(x) + c) = (W*s) @ clamp(x) + W @ c`` holds at every pixel.
+    ``bn2`` (the bottleneck's BN after the conv) is folded into the conv, followed by a ReLU;
+    without it the conv's output is returned as it is (a transition). ``order``: the input
+    channels arrive in this order of the training module's channels (a permutation).
     """
 
-    def __init__(self, bn1: nn.BatchNorm2d, conv: nn.Conv2d, bn2: nn.BatchNorm2d) -> None:
+    def __init__(self, bn1: nn.BatchNorm2d, conv: nn.Conv2d, bn2: nn.BatchNorm2d | None = None,
+                 order: torch.Tensor | None = None) -> None:
         super().__init__()
         scale, lo, hi, const = relu_affine_as_clamp(*bn_affine(bn1))
-        weight, bias = fold_conv_bn(conv, bn2)
+        if bn2 is not None:
+            weight, bias = fold_conv_bn(conv, bn2)
+        else:
+            weight, bias = conv.weight.detach(), torch.zeros(conv.out_channels)
         w = weight.double()[:, :, 0, 0]
         bias = bias.double() + w @ const.double().view(-1)
-        self.register_buffer("lo", lo)
-        self.register_buffer("hi", hi)
-        self.conv = _Conv((w * scale.double()).float()[:, :, None, None], bias.float(), relu=True)
+        w = w * scale.double()
+        if order is not None:
+            w, lo, hi = w[:, order], lo[:, order], hi[:, order]
+        self.register_buffer("lo", lo.contiguous())
+        self.register_buffer("hi", hi.contiguous())
+        self.conv = _Conv(w.float()[:, :, None, None], bias.float(), relu=bn2 is not None)
+
+    def clamp(self, x: torch.Tensor) -> torch.Tensor:
+        """The first pass alone: the input clamped per channel."""
+        return torch.clamp(x, self.lo, self.hi)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.conv(torch.clamp(x, self.lo, self.hi))
+        return self.conv(self.clamp(x))
 
 
 class InferenceNet(nn.Module):
@@ -155,8 +169,3 @@ class InferenceNet(nn.Module):
         x = self._dense(x) if self.config.arch == "densenet" else self._plain(x)
         out = self.tail(self.tail_pre(x))
         return out + image[:, :3] if self.config.output == "residual" else out
-
-
-def prepare_for_inference(model: Denoiser) -> InferenceNet:
-    """A folded copy of ``model`` for inference (the original is left unchanged)."""
-    return InferenceNet(model)

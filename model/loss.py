@@ -20,9 +20,11 @@ def gradient_l1(out: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
     return 0.5 * (gx + gy)
 
 
-def denoising_loss(out: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
-    """Scalar loss ``0.9 * L1 + 0.1 * gradient L1`` (both in transfer space), float32."""
+def denoising_loss(out: torch.Tensor, ref: torch.Tensor, gradient_weight: float = GRADIENT_WEIGHT) -> torch.Tensor:
+    """Scalar loss ``(1 - g) * L1 + g * gradient L1`` (both in transfer space), float32; the
+    paper's ``g = 0.1`` by default, ``g = 0`` is plain L1."""
     if out.shape != ref.shape:
         raise ValueError(f"output shape {tuple(out.shape)} differs from reference shape {tuple(ref.shape)}")
     out, ref = out.float(), ref.float()
-    return L1_WEIGHT * (out - ref).abs().mean() + GRADIENT_WEIGHT * gradient_l1(out, ref)
+    l1 = (out - ref).abs().mean()
+    return l1 if gradient_weight == 0 else (1.0 - gradient_weight) * l1 + gradient_weight * gradient_l1(out, ref)

@@ -135,13 +135,3 @@ def plain_width(config: ModelConfig) -> int:
     """Constant width of the plain CNN whose parameter count is closest to the densenet's."""
     target = densenet_params(config)
     return min(range(1, 4097), key=lambda w: abs(_plain_params(config, w) - target))
-
-
-def build_model(config: ModelConfig) -> Denoiser:
-    """A freshly initialised (He init, current torch RNG) float32 model on the CPU."""
-    return Denoiser(config)
-
-
-def count_parameters(model: nn.Module) -> int:
-    """Number of trainable parameters."""
-    return sum(p.numel() for p in model.parameters() if p.requires_grad)

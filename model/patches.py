@@ -58,9 +58,16 @@ def unique_counts(patches: np.ndarray) -> np.ndarray:
     return 1 + np.count_nonzero(flat[:, 1:] != flat[:, :-1], axis=1)
 
 
-def augment(noisy: np.ndarray, ref: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """Apply one random dihedral transform + RGB permutation identically to a PxPxC / PxPx3 pair."""
+def augment(noisy: np.ndarray, ref: np.ndarray, rng: np.random.Generator,
+            color_groups: Sequence[int] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Apply one random dihedral transform + RGB permutation identically to a PxPxC / PxPx3 pair.
+
+    ``color_groups``: first channels of the input's colour triplets that the permutation
+    applies to (default: RGB, and albedo at 3..5 when there are >= 6 channels).
+    """
     c = noisy.shape[-1]
+    if color_groups is None:
+        color_groups = (0, 3) if c >= 6 else (0,)
     both = np.concatenate([noisy, ref], axis=-1)
     if rng.random() < 0.5:
         both = both[:, ::-1]
@@ -70,9 +77,8 @@ def augment(noisy: np.ndarray, ref: np.ndarray, rng: np.random.Generator) -> tup
         both = both.transpose(1, 0, 2)
     perm = _RGB_PERMUTATIONS[rng.integers(len(_RGB_PERMUTATIONS))]
     channels = np.arange(c + 3)
-    channels[:3] = perm
-    if c >= 6:
-        channels[3:6] = 3 + perm
+    for start in color_groups:
+        channels[start:start + 3] = start + perm
     channels[c:] = c + perm
     both = both[:, :, channels]
     return both[:, :, :c], both[:, :, c:]
@@ -92,8 +98,10 @@ def _candidates(pairs: Sequence[TrainingPair], count: int, size: int,
 
 
 def sample_batch(pairs: Sequence[TrainingPair], batch: int, config: PatchConfig,
-                 rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+                 rng: np.random.Generator,
+                 color_groups: Sequence[int] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """``batch`` accepted, augmented crops -> (NxPxPxC noisy, NxPxPx3 ref) float32 arrays.
+    ``color_groups``: see :func:`augment`.
 
     Pairs are drawn uniformly (so every spp level of every scene is equally likely), crop
     positions uniformly. Raises :class:`DatasetError` if too few crops pass the flat-patch filter.
@@ -118,7 +126,7 @@ def sample_batch(pairs: Sequence[TrainingPair], batch: int, config: PatchConfig,
         raise DatasetError(f"only {len(kept_noisy)} of {batch} patches have >= {config.min_unique} distinct "
                            f"values after {config.max_rounds} rounds: the training images are almost flat")
     if config.augment:
-        pairs_out = [augment(n, r, rng) for n, r in zip(kept_noisy, kept_ref)]
+        pairs_out = [augment(n, r, rng, color_groups) for n, r in zip(kept_noisy, kept_ref)]
         kept_noisy, kept_ref = [p[0] for p in pairs_out], [p[1] for p in pairs_out]
     return (np.ascontiguousarray(np.stack(kept_noisy), dtype=np.float32),
             np.ascontiguousarray(np.stack(kept_ref), dtype=np.float32))

@@ -14,13 +14,22 @@ from dataclasses import dataclass
 import torch
 
 from model.errors import TrainingError
-from model.loss import denoising_loss
+from model.loss import GRADIENT_WEIGHT, denoising_loss
 
 
-def learning_rate(base_lr: float, decay: float, decay_every: int, step: int, warmup: int = 0) -> float:
-    """Step schedule: ``base_lr * decay ** (step // decay_every)`` (step counts from 0), ramped up
-    linearly over the first ``warmup`` steps (``(step + 1) / warmup`` of it)."""
+def learning_rate(base_lr: float, decay: float, decay_every: int, step: int, warmup: int = 0,
+                  cosine_steps: int = 0, final: float = 0.01) -> float:
+    """LR of step ``step`` (counting from 0), ramped up linearly over the first ``warmup`` steps
+    (``(step + 1) / warmup`` of it).
+
+    ``cosine_steps == 0``: the paper's step schedule ``base_lr * decay ** (step // decay_every)``.
+    ``cosine_steps > 0``: cosine decay from ``base_lr`` to ``final * base_lr`` over that many steps
+    (then constant), as OIDN's one-cycle schedule after its warm-up.
+    """
     ramp = min(1.0, (step + 1) / warmup) if warmup > 0 else 1.0
+    if cosine_steps > 0:
+        t = min(step, cosine_steps) / cosine_steps
+        return base_lr * (final + (1.0 - final) * 0.5 * (1.0 + math.cos(math.pi * t))) * ramp
     return base_lr * decay ** (step // decay_every) * ramp
 
 
@@ -59,7 +68,8 @@ def train_step(model: torch.nn.Module, optimizer: torch.optim.Optimizer, noisy: 
                ref: torch.Tensor, *, step: int, lr: float, guard: NonFiniteGuard,
                grad_clip: float | None = None, bf16: bool = False,
                micro_batch: int | None = None,
-               reduce_loss: Callable[[float], float] | None = None) -> StepResult:
+               reduce_loss: Callable[[float], float] | None = None,
+               gradient_weight: float = GRADIENT_WEIGHT) -> StepResult:
     """Forward, loss, backward and (unless NaN/Inf) an optimiser update on one batch.
 
     ``noisy``: NxCxHxW transfer-space input, ``ref``: Nx3xHxW transfer-space target.
@@ -67,6 +77,7 @@ def train_step(model: torch.nn.Module, optimizer: torch.optim.Optimizer, noisy: 
     ``micro_batch`` splits the batch into chunks of that size whose gradients are accumulated
     (the update still averages over all N patches, but BatchNorm normalises each chunk with its
     own statistics and updates its running statistics once per chunk).
+    ``gradient_weight``: share of the gradient-L1 term in the loss (:func:`model.loss.denoising_loss`).
     ``reduce_loss`` maps each chunk's loss to the value all data-parallel processes agree on (the
     mean over DDP ranks, NaN if any rank's is NaN), so that every rank skips the same steps;
     None keeps this process's own value.
@@ -80,7 +91,7 @@ def train_step(model: torch.nn.Module, optimizer: torch.optim.Optimizer, noisy: 
     for start in range(0, len(noisy), size):
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
             out = model(noisy[start:start + size])
-        loss = denoising_loss(out, ref[start:start + size]) * (len(out) / len(noisy))
+        loss = denoising_loss(out, ref[start:start + size], gradient_weight) * (len(out) / len(noisy))
         chunk_loss = float(loss.detach())
         if reduce_loss is not None:
             chunk_loss = reduce_loss(chunk_loss)

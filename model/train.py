@@ -26,7 +26,9 @@ from model.checkpoint import (Checkpoint, model_from_checkpoint, read_checkpoint
 from model.dataset import (load_training_pairs, load_val_images, read_dataset_config, read_manifest)
 from model.errors import ConfigError, DatasetError, ModelError, TrainingError
 from model.grow import grow_model
-from model.network import Denoiser, build_model
+from model.architectures import build_model
+from model.network import Denoiser
+from model.noise_input import drop_noise
 from model.patches import TrainingPair, sample_batch
 from model.run_log import RunLog, plot_curves
 from model.step import NonFiniteGuard, train_step
@@ -37,7 +39,7 @@ from pipeline.atomic_io import TMP_PREFIX, write_text_atomic
 from pipeline.denoise import file_sha256
 
 # dataset.json fields a resumed run must see unchanged
-_DATA_KEYS = ("spp", "ref_spp", "filter", "aovs")
+_DATA_KEYS = ("spp", "ref_spp", "filter", "aovs", "variance")
 
 
 class ProgressBar(Protocol):
@@ -93,7 +95,11 @@ class BatchSource:
 
     def _make(self, step: int) -> tuple[np.ndarray, np.ndarray]:
         rng = np.random.default_rng([self.config.seed, step])
-        return sample_batch(self.pairs, self.config.batch, self.config.patch, rng)
+        model = self.config.model
+        noisy, ref = sample_batch(self.pairs, self.config.batch, self.config.patch, rng, model.color_groups)
+        if model.noise_input:
+            drop_noise(noisy, model.noise_start, self.config.noise_dropout, rng)
+        return noisy, ref
 
     def get(self, step: int) -> tuple[torch.Tensor, torch.Tensor]:
         """(noisy NxCxPxP, ref Nx3xPxP) transfer-space tensors of ``step``."""
@@ -127,6 +133,9 @@ def _check_data_config(data_config: dict[str, Any], ckpt: Checkpoint | None, con
     if config.model.aux_inputs and not {"alb", "nrm"} <= set(data_config.get("aovs") or []):
         raise DatasetError(f"{config.data}: the model needs albedo/normal but dataset.json lists aovs "
                            f"{data_config.get('aovs')!r}")
+    if config.model.noise_input and not data_config.get("variance"):
+        raise DatasetError(f"{config.data}: the model takes noise input but the dataset has no variance "
+                           "images (generate it with --variance)")
     saved = ckpt.header.get("data_config") if ckpt is not None else None
     if saved:
         diff = [k for k in _DATA_KEYS if saved.get(k) != data_config.get(k)]
@@ -156,15 +165,16 @@ class _Run:
         root = Path(config.data)
         self.data_config = read_dataset_config(root)
         _check_data_config(self.data_config, ckpt, config)
-        records = read_manifest(root)
+        records = [r for r in read_manifest(root) if not config.max_scenes or r.index < config.max_scenes]
         train_records = [r for r in records if r.split == "train"]
         if not train_records:
             raise DatasetError(f"{root}: manifest has no scenes in split 'train'")
-        self.pairs = load_training_pairs(root, train_records, get_transfer(config.model.transfer),
-                                         config.model.aux_inputs, converged=config.converged_pairs)
+        model = config.model
+        self.pairs = load_training_pairs(root, train_records, get_transfer(model.transfer), model.aux_inputs,
+                                         converged=config.converged_pairs, noise=model.noise_input)
         val_records = [r for r in records if r.split == "val"]
-        self.validator = Validator(load_val_images(root, val_records, config.model.aux_inputs), config.oidn) \
-            if val_records and config.val_every else None
+        self.validator = Validator(load_val_images(root, val_records, model.aux_inputs, model.noise_input),
+                                   config.oidn) if val_records and config.val_every else None
         self.model, self.optimizer = self._build(ckpt)
         extra = ckpt.header.get("extra", {}) if ckpt else {}
         self.step = int(ckpt.header["step"]) if ckpt else 0
@@ -265,7 +275,7 @@ def _one_step(run: _Run, net: torch.nn.Module, source: BatchSource, bar: Progres
     lr = config.lr_at(run.step)
     result = train_step(net, run.optimizer, noisy, ref, step=run.step, lr=lr, guard=run.guard,
                         grad_clip=config.grad_clip, bf16=config.bf16, micro_batch=config.micro_batch,
-                        reduce_loss=run.reduce_loss)
+                        reduce_loss=run.reduce_loss, gradient_weight=config.gradient_weight)
     run.step += 1
     if result.skipped:
         run.meter.skipped += 1

@@ -44,6 +44,13 @@ class TrainConfig:
     ``lr_warmup``: steps over which the LR ramps up linearly from lr/lr_warmup (0: none).
     ``init_from``: checkpoint of a shallower densenet (same growth, width, transfer, output) whose
     weights start a new run (:mod:`model.grow`); the optimiser and step start afresh.
+    ``lr_cosine_steps`` > 0: cosine decay of the LR to ``lr_final * lr`` over that many steps
+    instead of the step schedule (``lr_decay``/``lr_decay_every`` then unused).
+    ``noise_dropout``: for a model with ``noise_input``, the share of patches whose noise
+    channels are zeroed (marked unknown), so that it also works on images without a variance.
+    ``gradient_weight``: share of the gradient L1 in the loss (the paper's 0.1; 0: plain L1).
+    ``max_scenes`` > 0: train and validate on the scenes with index below it only (the dataset
+    may hold more, e.g. while it is still being generated), so a run's data is fixed.
     ``converged_pairs``: besides each scene's noisy renders, train on (reference, reference) — a
     converged input must come out unchanged (off in the paper; see README "Choices, measured").
     """
@@ -58,6 +65,11 @@ class TrainConfig:
     lr_decay: float = 0.9
     lr_decay_every: int = 10_000
     lr_warmup: int = 0
+    lr_cosine_steps: int = 0
+    lr_final: float = 0.01
+    noise_dropout: float = 0.25
+    gradient_weight: float = 0.1
+    max_scenes: int = 0
     grad_clip: float | None = None
     init_from: str | None = None
     converged_pairs: bool = False
@@ -82,7 +94,7 @@ class TrainConfig:
             value = getattr(self, name)
             if not isinstance(value, int) or isinstance(value, bool) or value < 1:
                 raise ConfigError(f"{name} must be a positive integer, got {value!r}")
-        for name in ("val_every", "threads", "seed", "lr_warmup"):
+        for name in ("val_every", "threads", "seed", "lr_warmup", "lr_cosine_steps", "max_scenes"):
             value = getattr(self, name)
             if not isinstance(value, int) or isinstance(value, bool) or value < 0:
                 raise ConfigError(f"{name} must be an integer >= 0, got {value!r}")
@@ -90,6 +102,12 @@ class TrainConfig:
             raise ConfigError(f"lr must be > 0, got {self.lr!r}")
         if not (isinstance(self.lr_decay, (int, float)) and 0 < self.lr_decay <= 1):
             raise ConfigError(f"lr_decay must be in (0, 1], got {self.lr_decay!r}")
+        if not (isinstance(self.lr_final, (int, float)) and 0 <= self.lr_final <= 1):
+            raise ConfigError(f"lr_final must be in [0, 1], got {self.lr_final!r}")
+        if not (isinstance(self.gradient_weight, (int, float)) and 0 <= self.gradient_weight <= 1):
+            raise ConfigError(f"gradient_weight must be in [0, 1], got {self.gradient_weight!r}")
+        if not (isinstance(self.noise_dropout, (int, float)) and 0 <= self.noise_dropout <= 1):
+            raise ConfigError(f"noise_dropout must be in [0, 1], got {self.noise_dropout!r}")
         if self.micro_batch is not None and not (
                 isinstance(self.micro_batch, int) and 1 <= self.micro_batch <= self.batch
                 and self.batch % self.micro_batch == 0):
@@ -103,7 +121,8 @@ class TrainConfig:
 
     def lr_at(self, step: int) -> float:
         """Learning rate of optimiser step ``step`` (from 0): decay schedule and warm-up."""
-        return learning_rate(self.lr, self.lr_decay, self.lr_decay_every, step, self.lr_warmup)
+        return learning_rate(self.lr, self.lr_decay, self.lr_decay_every, step, self.lr_warmup,
+                             self.lr_cosine_steps, self.lr_final)
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready dict (nested configs as dicts)."""

@@ -13,10 +13,10 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
+import torch
 
 from model.dataset import ValImage
 from model.infer import denoise_image
-from model.network import Denoiser
 from pipeline.metrics import psnr, relmse
 
 Metrics = tuple[float, float]  # (PSNR dB, relMSE)
@@ -62,7 +62,7 @@ class Validator:
             self._baseline[key] = {"noisy": _metrics(image.noisy, image.ref), "oidn": oidn}
         return self._baseline[key]
 
-    def run(self, model: Denoiser, tile: int = 256) -> dict[str, Any]:
+    def run(self, model: torch.nn.Module, tile: int = 256) -> dict[str, Any]:
         """Denoise every validation image; return the mean metrics overall and per spp.
 
         Result: ``{"psnr": ours mean dB, "relmse": ours mean, "images": n, "per_spp": {"16":
@@ -70,7 +70,8 @@ class Validator:
         """
         rows: dict[int, dict[str, list[Metrics | None]]] = defaultdict(lambda: defaultdict(list))
         for image in self.images:
-            ours = _metrics(denoise_image(model, image.noisy, image.aux, core=tile), image.ref)
+            ours = _metrics(denoise_image(model, image.noisy, image.aux, core=tile, variance=image.variance),
+                            image.ref)
             rows[image.spp]["ours"].append(ours)
             for name, value in self._baselines(image).items():
                 rows[image.spp][name].append(value)

@@ -86,17 +86,18 @@ class Denoiser:
     the shipped ``model/weights/default.ckpt``).
     ``max_memory_mb`` bounds the activations of one tile; ``threads`` sets torch's CPU threads.
     ``optimize``: run the folded, concatenation-free copy of the model
-    (:mod:`model.inference_net`, equal up to float32 rounding) instead of the training module.
+    (:mod:`model.inference_net`, :mod:`model.inference_unet`; equal up to float32 rounding)
+    instead of the training module. ``skip_below``: with a variance, leave the parts of the image
+    whose transfer-space noise is below this out of the network (:func:`model.infer.denoise_image`).
     """
 
     def __init__(self, checkpoint: str | Path | None = None,
                  max_memory_mb: float = DEFAULT_MAX_MEMORY_MB, threads: int | None = None,
-                 optimize: bool = True) -> None:
+                 optimize: bool = True, skip_below: float | None = None) -> None:
         import torch
 
         from model.checkpoint import load_model
-        from model.infer import receptive_radius
-        from model.inference_net import prepare_for_inference
+        from model.architectures import prepare_for_inference, receptive_radius
 
         path = resolve_model(checkpoint)
         if not 0 < max_memory_mb < float("inf"):  # also refuses NaN
@@ -109,6 +110,7 @@ class Denoiser:
         self.net = prepare_for_inference(self.model) if optimize else self.model
         self.max_memory_mb = float(max_memory_mb)
         self.margin = receptive_radius(self.config)
+        self.skip_below = skip_below
 
     @property
     def name(self) -> str:
@@ -162,7 +164,8 @@ class Denoiser:
             raise DenoiserError(f"variance shape {np.shape(variance)} differs from image {rgb.shape}")
         count = [0]
         out = denoise_image(self.net, rgb, aux, self.core_size(),
-                            progress=lambda n, total: count.__setitem__(0, total))
+                            progress=lambda n, total: count.__setitem__(0, total),
+                            variance=variance, skip_below=self.skip_below)
         weight = weights = None
         if variance is not None:
             with np.errstate(invalid="ignore"):

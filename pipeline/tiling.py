@@ -5,6 +5,10 @@ on every side (clamped at the image border) and only its core is kept. A fully c
 network with receptive-field radius r (and no normalisation across pixels) gives bit-for-bit the
 untiled result in the core whenever ``margin >= r``: every core pixel sees the same input pixels,
 and at the image border the same zero padding. So no blending is needed and no seam can show.
+A network that works on a grid of ``align``-pixel cells (pooling, pixel-unshuffle) is also
+exact when every window starts on that grid: with ``align`` the cores start on multiples of it
+and the windows are widened outwards to it (a window that reaches the image's end keeps the
+end, so it is padded to the alignment as the whole image is).
 """
 from __future__ import annotations
 
@@ -29,17 +33,32 @@ class Tile:
     wx1: int
 
 
-def plan_tiles(height: int, width: int, core: int, margin: int) -> Iterator[Tile]:
-    """Cover an image with cores of at most ``core`` px (sizes balanced), windows + ``margin``."""
-    if core < 1 or margin < 0:
-        raise ValueError(f"tile core must be >= 1 and margin >= 0, got {core}, {margin}")
-    ny, nx = math.ceil(height / core), math.ceil(width / core)
-    ys = [round(i * height / ny) for i in range(ny + 1)]
-    xs = [round(i * width / nx) for i in range(nx + 1)]
+def _cuts(size: int, core: int, align: int) -> list[int]:
+    """Core boundaries along one axis: balanced, on multiples of ``align``, first 0, last ``size``."""
+    parts = math.ceil(size / core)
+    cuts = sorted({min(size, align * round(i * size / parts / align)) for i in range(parts)} | {size})
+    return cuts if cuts[0] == 0 else [0, *cuts]
+
+
+def plan_tiles(height: int, width: int, core: int, margin: int, align: int = 1) -> Iterator[Tile]:
+    """Cover an image with cores of at most ``core`` px (sizes balanced), windows + ``margin``;
+    with ``align`` > 1 cores start and windows start/end on multiples of it (see module docstring)."""
+    if core < 1 or margin < 0 or align < 1:
+        raise ValueError(f"tile core and align must be >= 1 and margin >= 0, got {core}, {align}, {margin}")
+    core = max(align, core - core % align)
+    ys, xs = _cuts(height, core, align), _cuts(width, core, align)
     for y0, y1 in zip(ys[:-1], ys[1:]):
         for x0, x1 in zip(xs[:-1], xs[1:]):
-            yield Tile(y0, y1, x0, x1, max(0, y0 - margin), min(height, y1 + margin),
-                       max(0, x0 - margin), min(width, x1 + margin))
+            yield Tile(y0, y1, x0, x1, *_window(y0, y1, height, margin, align),
+                       *_window(x0, x1, width, margin, align))
+
+
+def _window(lo: int, hi: int, size: int, margin: int, align: int) -> tuple[int, int]:
+    """Window [start, end) of the core [lo, hi) along an axis of ``size`` pixels: ``margin`` more
+    on each side, widened to multiples of ``align`` (the end stays ``size`` where it reaches it)."""
+    start = max(0, lo - margin) // align * align
+    end = hi + margin
+    return start, (size if end >= size else min(size, -(-end // align) * align))
 
 
 def core_for_budget(bytes_per_pixel: float, max_bytes: float, margin: int, minimum: int = 16) -> int:
@@ -50,14 +69,33 @@ def core_for_budget(bytes_per_pixel: float, max_bytes: float, margin: int, minim
 
 def run_tiled(
     fn: Callable[[np.ndarray], np.ndarray], image: np.ndarray, core: int, margin: int,
-    progress: Callable[[int, int], None] | None = None,
+    progress: Callable[[int, int], None] | None = None, align: int = 1,
 ) -> np.ndarray:
     """Apply ``fn`` (HxWxC -> HxWxC', same H, W) tile by tile; returns the stitched HxWxC'."""
     height, width = image.shape[:2]
-    tiles = list(plan_tiles(height, width, core, margin))
-    out: np.ndarray | None = None
+    return run_windows(lambda t: fn(image[t.wy0:t.wy1, t.wx0:t.wx1]), height, width, core, margin,
+                       progress, align)
+
+
+def run_windows(
+    fn: Callable[[Tile], np.ndarray], height: int, width: int, core: int, margin: int,
+    progress: Callable[[int, int], None] | None = None, align: int = 1,
+    out: np.ndarray | None = None, region: tuple[int, int, int, int] | None = None,
+) -> np.ndarray:
+    """Call ``fn(tile)`` for each tile of an HxW image (it returns the HxWxC' result over the
+    tile's window) and stitch the cores into ``out`` (allocated on the first result if None).
+
+    ``region`` (y0, y1, x0, x1): tile only that part of the image (its corners on multiples of
+    ``align``, or at the image's end); the windows still take their margins from the whole image,
+    and ``out`` outside the region is left as it is.
+    """
+    y0, y1, x0, x1 = region if region is not None else (0, height, 0, width)
+    tiles = [Tile(t.y0 + y0, t.y1 + y0, t.x0 + x0, t.x1 + x0,
+                  *_window(t.y0 + y0, t.y1 + y0, height, margin, align),
+                  *_window(t.x0 + x0, t.x1 + x0, width, margin, align))
+             for t in plan_tiles(y1 - y0, x1 - x0, core, 0, align)]
     for n, t in enumerate(tiles):
-        result = fn(image[t.wy0:t.wy1, t.wx0:t.wx1])
+        result = fn(t)
         if out is None:
             out = np.empty((height, width, result.shape[2]), dtype=result.dtype)
         out[t.y0:t.y1, t.x0:t.x1] = result[t.y0 - t.wy0:t.y1 - t.wy0, t.x0 - t.wx0:t.x1 - t.wx0]

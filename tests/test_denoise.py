@@ -10,7 +10,7 @@ import torch
 
 from model.checkpoint import save_checkpoint
 from model.config import ModelConfig
-from model.network import build_model
+from model.architectures import build_model
 from pipeline.denoise import Denoiser, count_invalid
 from pipeline.errors import DenoiserError
 

@@ -27,9 +27,10 @@ from hypothesis.extra import numpy as hnp
 from model.checkpoint import read_checkpoint, save_checkpoint
 from model.cli import main as train_main
 from model.config import ModelConfig
-from model.infer import denoise_image, exposure_scale, receptive_radius
+from model.architectures import receptive_radius
+from model.infer import denoise_image, exposure_scale
 from model.network import Denoiser as Network
-from model.network import build_model
+from model.architectures import build_model
 from model.step import NonFiniteGuard, train_step
 from model.synthetic import write_synthetic_dataset
 from model.transfer import HDR_MAX, get_transfer

@@ -15,8 +15,9 @@ import torch
 
 from model.checkpoint import save_checkpoint
 from model.config import ModelConfig
-from model.inference_net import bn_affine, fold_conv_bn, prepare_for_inference, relu_affine_as_clamp
-from model.network import build_model
+from model.architectures import prepare_for_inference
+from model.inference_net import bn_affine, fold_conv_bn, relu_affine_as_clamp
+from model.architectures import build_model
 from pipeline.denoise import Denoiser
 
 NET_ATOL = 2e-5

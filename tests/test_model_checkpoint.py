@@ -12,7 +12,7 @@ from model.checkpoint import (load_model, read_checkpoint, restore_optimizer, re
 from model.config import ModelConfig
 from model.errors import CheckpointError
 from model.loss import denoising_loss
-from model.network import build_model
+from model.architectures import build_model
 
 CONFIG = ModelConfig(layers=3, growth=4, init_features=8, transfer="pu", output="direct")
 

@@ -12,7 +12,7 @@ from model.cli import main
 from model.config import ModelConfig
 from model.errors import ConfigError
 from model.grow import grow_model
-from model.network import build_model
+from model.architectures import build_model
 from model.synthetic import write_synthetic_dataset
 from pipeline.denoise import file_sha256
 

@@ -7,7 +7,7 @@ import torch
 
 from model.config import ModelConfig
 from model.infer import denoise_image
-from model.network import build_model
+from model.architectures import build_model
 from model.transfer import HDR_MAX
 
 

@@ -4,8 +4,9 @@ from __future__ import annotations
 import pytest
 import torch
 
+from model.architectures import build_model
 from model.config import PRESETS, ModelConfig, preset
-from model.network import Denoiser, DenseBlock, PlainStack, build_model, gradient_channels, network_input
+from model.network import Denoiser, DenseBlock, PlainStack, gradient_channels, network_input
 
 TINY = ModelConfig(layers=2, growth=4, init_features=8)
 

@@ -7,7 +7,7 @@ import torch
 from model.config import ModelConfig
 from model.errors import TrainingError
 from model.loss import denoising_loss
-from model.network import build_model
+from model.architectures import build_model
 from model.step import NonFiniteGuard, learning_rate, train_step
 
 TINY = ModelConfig(layers=2, growth=4, init_features=8)

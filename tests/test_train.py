@@ -100,7 +100,7 @@ def test_nan_losses_stop_training_without_poisoning(dataset: Path, tmp_path: Pat
     assert main(["--data", str(dataset), "--out", str(run), "--config", cfg, "--steps", "2"]) == 0
     before = read_checkpoint(run / "last.ckpt").prefixed("model/")
     real = model.step.denoising_loss
-    monkeypatch.setattr(model.step, "denoising_loss", lambda out, ref: real(out, ref) * float("nan"))
+    monkeypatch.setattr(model.step, "denoising_loss", lambda out, ref, *a: real(out, ref, *a) * float("nan"))
     rc = main(["--out", str(run), "--resume", "--steps", "20", "--max-bad-steps", "3", "--no-progress"])
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 1 and len(err) == 1

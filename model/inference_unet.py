@@ -1,0 +1,166 @@
+"""An inference-only copy of a trained :class:`model.unet.MultiScaleDenoiser`: same function, less work.
+
+The same rewrites as :mod:`model.inference_net` (exact up to float32 rounding), plus what the
+encoder/decoder shape allows:
+
+* **BatchNorm folded** into the conv before it (stem, every bottleneck's 1x1), and every BN-ReLU
+  in front of a 1x1 conv (bottleneck layers, transitions down and up) rewritten as one clamp
+  whose scale and shift live in the conv (:class:`model.inference_net._ClampConv1x1`).
+* **Pool before the transition's 1x1 conv.** 2x2 average pooling and a 1x1 conv (with bias) are
+  both linear per pixel, so they commute: the conv runs on a quarter of the pixels.
+* **No concatenation.** Each level owns one preallocated buffer laid out as
+  ``[encoder block | upsampled decoder input | decoder layers]``: the encoder block's layers write
+  their channels into it, the transition up writes the upsampled features next to them, and the
+  decoder layers append theirs, so the skip connection costs no copy. The decoder's 1x1 convs
+  (and the tail) see the channels in this order instead of the training module's
+  ``[up | skip | ...]``, so their weights are permuted to match.
+* **Nearest upsampling written in place** through a strided view of the buffer (one pass).
+* **channels_last** activations and weights.
+
+Input and output are those of the original model: NxCxHxW transfer-space image -> Nx3xHxW
+transfer-space RGB. ``tests/test_inference_unet.py`` bounds the difference.
+"""
+from __future__ import annotations
+
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+from model.config import ModelConfig
+from model.inference_net import _AffineReLU, _ClampConv1x1, _Conv, bn_affine, fold_conv_bn
+from model.network import network_input
+from model.unet import Block, MultiScaleDenoiser, alignment, pad_to_alignment
+
+
+class _FoldedBlock(nn.Module):
+    """A block's layers as (clamp-conv1x1, conv3x3) pairs; dense ones write into a buffer."""
+
+    def __init__(self, block: Block, order: torch.Tensor | None = None) -> None:
+        super().__init__()
+        self.dense = block.dense
+        self.conv1 = nn.ModuleList()
+        self.conv3 = nn.ModuleList()
+        for layer in block.layers:
+            bn1, _, conv1, bn2, _, conv3 = layer.body
+            cin = conv1.in_channels
+            self.conv1.append(_ClampConv1x1(bn1, conv1, bn2, None if order is None else order[:cin]))
+            self.conv3.append(_Conv(conv3.weight.detach().clone(), None, relu=False))
+        self.out_channels = block.out_channels
+
+    def run_dense(self, buf: torch.Tensor, start: int) -> None:
+        """Layer i reads ``buf[:, :start + i*k]`` and writes its k channels right after."""
+        c = start
+        for conv1, conv3 in zip(self.conv1, self.conv3):
+            y = conv3(conv1(buf[:, :c]))
+            buf[:, c:c + y.shape[1]] = y
+            c += y.shape[1]
+
+    def run_plain(self, x: torch.Tensor) -> torch.Tensor:
+        for conv1, conv3 in zip(self.conv1, self.conv3):
+            x = conv3(conv1(x))
+        return x
+
+
+def _upsample_into(target: torch.Tensor, low: torch.Tensor) -> None:
+    """``target[n, c, y, x] = low[n, c, y // 2, x // 2]`` for an NxCx2hx2w ``target`` (any strides)."""
+    n, c, h, w = low.shape
+    s = target.stride()
+    view = target.as_strided((n, c, h, 2, w, 2), (s[0], s[1], 2 * s[2], s[2], 2 * s[3], s[3]),
+                             target.storage_offset())
+    view.copy_(low[:, :, :, None, :, None].expand(n, c, h, 2, w, 2))
+
+
+def _buffer(x: torch.Tensor, channels: int, h: int, w: int) -> torch.Tensor:
+    return torch.empty(x.shape[0], channels, h, w, dtype=x.dtype, memory_format=torch.channels_last)
+
+
+class InferenceUNet(nn.Module):
+    """The folded, concatenation-free, channels_last equivalent of a MultiScaleDenoiser in eval mode."""
+
+    def __init__(self, model: MultiScaleDenoiser) -> None:
+        super().__init__()
+        self.config: ModelConfig = model.config
+        self.dense = model.config.arch == "dense_unet"
+        n = model.config.levels
+        with torch.no_grad():
+            conv0, bn0, _ = model.stem
+            self.stem = _Conv(*fold_conv_bn(conv0, bn0), relu=True)
+            self.enc = nn.ModuleList(_FoldedBlock(b) for b in model.enc)
+            self.enc_width = [b.out_channels for b in model.enc]
+            self.width = [seq[2].out_channels for seq in model.up][::-1]  # w_i per level (up -> level i)
+            self.level_channels = []
+            orders = []
+            for i in range(n):
+                e, w = self.enc_width[i], self.width[i]
+                total = model.dec[n - 1 - i].out_channels
+                self.level_channels.append(total)
+                orders.append(torch.cat([torch.arange(w, w + e), torch.arange(w), torch.arange(w + e, total)])
+                              if self.dense else None)
+            self.down = nn.ModuleList(_ClampConv1x1(seq[0], seq[2]) for seq in model.down)
+            self.bottom = _FoldedBlock(model.bottom)
+            self.bottom_channels = model.bottom.out_channels
+            # up[j] and dec[j] belong to level n-1-j; store them by level
+            self.up = nn.ModuleList(
+                _ClampConv1x1(model.up[n - 1 - i][0], model.up[n - 1 - i][2],
+                              order=orders[i + 1][:model.up[n - 1 - i][2].in_channels]
+                              if i + 1 < n and self.dense else None)
+                for i in range(n))
+            self.dec = nn.ModuleList(_FoldedBlock(model.dec[n - 1 - i], orders[i]) for i in range(n))
+            scale, shift = bn_affine(model.tail_bn)
+            tail_weight = model.tail.weight.detach().clone()
+            if self.dense:
+                scale, shift, tail_weight = scale[orders[0]], shift[orders[0]], tail_weight[:, orders[0]]
+            self.tail_pre = _AffineReLU(scale, shift)
+            self.tail = _Conv(tail_weight, None, relu=False)
+            self.skip = _Conv(model.skip.weight.detach().clone(), model.skip.bias.detach().clone(), relu=False)
+        self.eval()
+
+    def _encode(self, x: torch.Tensor, level: int) -> torch.Tensor:
+        """Run encoder block ``level`` on its input ``x``; returns the level's buffer (dense) or
+        the block's output (plain)."""
+        if not self.dense:
+            return self.enc[level].run_plain(x)
+        h, w = x.shape[-2:]
+        buf = _buffer(x, self.level_channels[level], h, w)
+        buf[:, :x.shape[1]] = x
+        self.enc[level].run_dense(buf, x.shape[1])
+        return buf
+
+    def _bottom(self, x: torch.Tensor) -> torch.Tensor:
+        if not self.dense:
+            return self.bottom.run_plain(x)
+        buf = _buffer(x, self.bottom_channels, *x.shape[-2:])
+        buf[:, :x.shape[1]] = x
+        self.bottom.run_dense(buf, x.shape[1])
+        return buf
+
+    def _decode(self, below: torch.Tensor, skip: torch.Tensor, level: int) -> torch.Tensor:
+        """Transition up from ``below`` and decoder block ``level`` (``skip``: the level's
+        buffer for dense nets, whose encoder part is already filled)."""
+        up = self.up[level](below)
+        if not self.dense:
+            big = F.interpolate(up, scale_factor=2.0, mode="nearest")
+            return self.dec[level].run_plain(torch.cat([big, skip], dim=1))
+        e, w = self.enc_width[level], self.width[level]
+        _upsample_into(skip[:, e:e + w], up)
+        self.dec[level].run_dense(skip, e + w)
+        return skip
+
+    def forward(self, image: torch.Tensor) -> torch.Tensor:
+        h, w = image.shape[-2:]
+        x = pad_to_alignment(network_input(image), alignment(self.config))
+        raw = F.pixel_unshuffle(x, 2).contiguous(memory_format=torch.channels_last)
+        x = self.stem(raw)
+        levels = []
+        for i, down in enumerate(self.down):
+            buf = self._encode(x, i)
+            levels.append(buf)
+            e = self.enc_width[i]
+            x = down.conv(F.avg_pool2d(down.clamp(buf[:, :e]), 2))
+        x = self._bottom(x)
+        for i in reversed(range(len(levels))):
+            x = self._decode(x, levels[i], i)
+        y = self.tail(self.tail_pre(x))
+        y += self.skip(raw)
+        out = F.pixel_shuffle(y, 2)[..., :h, :w]
+        return out + image[:, :3] if self.config.output == "residual" else out

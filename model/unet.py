@@ -1,0 +1,267 @@
+"""The multi-scale denoisers: Kim & Lee's dense bottleneck layers arranged as an encoder/decoder.
+
+A fully convolutional DenseNet in the spirit of Jegou et al. 2017 ("The One Hundred Layers
+Tiramisu") and of OIDN's U-Net, built so that nothing heavy runs at full resolution::
+
+    image (+ gradient channels, + noise channels)      H x W, Cin channels
+    -> pixel-unshuffle 2 -> conv3x3 + BN + ReLU         H/2: the stem, w_0 channels
+    -> encoder: for i < levels, block i (at 1/2^(i+1)), kept as skip i,
+                then BN-ReLU-conv1x1 -> w_(i+1) and 2x2 average pooling
+    -> bottom block (at 1/2^(levels+1))
+    -> decoder: for i = levels-1 .. 0, BN-ReLU-conv1x1 -> w_i, nearest 2x upsampling,
+                concatenated with skip i, block i
+    -> BN-ReLU-conv3x3 of the last block + conv3x3 of the unshuffled input (so that every
+       pixel's own value reaches the output) -> 12 channels -> pixel-shuffle 2 -> RGB (H x W)
+    (+ the input RGB for ``output="residual"``)
+
+A *block* is ``layers`` of the paper's bottleneck layers (BN-ReLU-Conv1x1-BN-ReLU-Conv3x3), their
+outputs concatenated (``dense_unet``), or, for the science table's plain network
+(``plain_unet``), the same layers chained at a constant width without concatenation, widths
+scaled so that it costs as many MACs per pixel as the dense one. Level i (i = 0 .. levels) has
+width ``w_i = round(init_features * (1 + i/2))`` and growth ``k_i = round(growth * (1 + i/2))``:
+the deeper levels are cheap (1/4 of the pixels per level), so they get more channels.
+
+Any H, W >= 1: the input is padded at the bottom and right by replicating its last row/column
+up to a multiple of :func:`alignment` and the output cropped back. BatchNorm in eval mode is a
+per-channel affine map, so the network is translation-equivariant on the alignment grid:
+:func:`receptive_radius` bounds how far an output pixel looks, and tiles cut on the grid with that
+margin reproduce the whole-image output (:mod:`pipeline.tiling`).
+"""
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+from model.config import ModelConfig
+from model.network import BottleneckLayer, init_weights, network_input
+
+
+def level_width(config: ModelConfig, level: int) -> int:
+    """Channels entering the encoder block of ``level`` (the stem's width at level 0)."""
+    return round(config.init_features * (1 + level / 2))
+
+
+def level_growth(config: ModelConfig, level: int) -> int:
+    """Growth rate of the blocks at ``level``."""
+    return round(config.growth * (1 + level / 2))
+
+
+def alignment(config: ModelConfig) -> int:
+    """Input sides are padded to a multiple of this: 2^(levels+1)."""
+    return 2 ** (config.levels + 1)
+
+
+class Block(nn.Module):
+    """``layers`` bottleneck layers at one resolution: dense (outputs concatenated to the input)
+    or plain (chained at the input's width). ``out_channels`` is what it returns."""
+
+    def __init__(self, cin: int, layers: int, growth: int, bottleneck: int, dense: bool,
+                 plain_mid: int = 0) -> None:
+        super().__init__()
+        self.dense = dense
+        if dense:
+            self.layers = nn.ModuleList(BottleneckLayer(cin + i * growth, bottleneck * growth, growth)
+                                        for i in range(layers))
+            self.out_channels = cin + layers * growth
+        else:
+            self.layers = nn.ModuleList(BottleneckLayer(cin, plain_mid, cin) for _ in range(layers))
+            self.out_channels = cin
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        for layer in self.layers:
+            x = torch.cat([x, layer(x)], dim=1) if self.dense else layer(x)
+        return x
+
+
+def _bn_relu_conv1x1(cin: int, cout: int) -> nn.Sequential:
+    return nn.Sequential(nn.BatchNorm2d(cin), nn.ReLU(inplace=True), nn.Conv2d(cin, cout, 1, bias=False))
+
+
+class _Widths:
+    """Channel plan of a multi-scale net: per level the block input width, growth, plain width."""
+
+    def __init__(self, config: ModelConfig, plain_scale: float = 1.0) -> None:
+        dense = config.arch == "dense_unet"
+        n = config.levels
+        self.width = [level_width(config, i) for i in range(n + 1)]
+        self.growth = [level_growth(config, i) for i in range(n + 1)]
+        if not dense:  # plain: constant width per block, scaled to the dense net's cost
+            self.width = [max(1, round(w * plain_scale)) for w in self.width]
+        self.mid = [config.bottleneck * k for k in self.growth]
+
+
+class MultiScaleDenoiser(nn.Module):
+    """The encoder/decoder network of this module's docstring (``dense_unet`` or ``plain_unet``).
+
+    Input: NxCxHxW float32 image in transfer space (RGB, then aux, then noise channels, as
+    :attr:`ModelConfig.image_channels`). Output: Nx3xHxW transfer-space RGB.
+    """
+
+    def __init__(self, config: ModelConfig, plain_scale: float | None = None) -> None:
+        super().__init__()
+        if not config.multiscale:
+            raise ValueError(f"{config.arch} is not a multi-scale arch")
+        self.config = config
+        dense = config.arch == "dense_unet"
+        if plain_scale is None:
+            plain_scale = 1.0 if dense else plain_width_scale(config)
+        plan = _Widths(config, plain_scale)
+        n, layers = config.levels, config.layers
+        cin4 = 4 * config.in_channels
+        w = plan.width
+        self.stem = nn.Sequential(nn.Conv2d(cin4, w[0], 3, padding=1, bias=False), nn.BatchNorm2d(w[0]),
+                                  nn.ReLU(inplace=True))
+
+        def block(cin: int, level: int) -> Block:
+            return Block(cin, layers, plan.growth[level], config.bottleneck, dense, plan.mid[level])
+
+        self.enc = nn.ModuleList()
+        self.down = nn.ModuleList()
+        for i in range(n):
+            self.enc.append(block(w[i], i))
+            self.down.append(_bn_relu_conv1x1(self.enc[i].out_channels, w[i + 1]))
+        self.bottom = block(w[n], n)
+        self.up = nn.ModuleList()
+        self.dec = nn.ModuleList()
+        below = self.bottom.out_channels
+        for i in reversed(range(n)):
+            self.up.append(_bn_relu_conv1x1(below, w[i]))
+            self.dec.append(block(w[i] + self.enc[i].out_channels, i))
+            below = self.dec[-1].out_channels
+        self.tail_bn = nn.BatchNorm2d(below)
+        self.tail = nn.Conv2d(below, 12, 3, padding=1, bias=False)
+        self.skip = nn.Conv2d(cin4, 12, 3, padding=1, bias=True)
+        init_weights(self)
+        if config.output == "residual":
+            # the correction starts at zero: the untrained model is the identity
+            nn.init.zeros_(self.tail.weight)
+            nn.init.zeros_(self.skip.weight)
+        nn.init.zeros_(self.skip.bias)
+
+    def forward(self, image: torch.Tensor) -> torch.Tensor:
+        h, w = image.shape[-2:]
+        x = pad_to_alignment(network_input(image), alignment(self.config))
+        raw = F.pixel_unshuffle(x, 2)
+        x = self.stem(raw)
+        skips = []
+        for enc, down in zip(self.enc, self.down):
+            x = enc(x)
+            skips.append(x)
+            x = F.avg_pool2d(down(x), 2)
+        x = self.bottom(x)
+        for up, dec in zip(self.up, self.dec):
+            x = dec(torch.cat([F.interpolate(up(x), scale_factor=2.0, mode="nearest"), skips.pop()], dim=1))
+        x = self.tail(F.relu(self.tail_bn(x))) + self.skip(raw)
+        out = F.pixel_shuffle(x, 2)[..., :h, :w]
+        return out + image[:, :3] if self.config.output == "residual" else out
+
+
+def pad_to_alignment(x: torch.Tensor, align: int) -> torch.Tensor:
+    """Pad an NxCxHxW tensor at the bottom and right, replicating the last row/column, to sides
+    that are multiples of ``align`` (unchanged if they already are)."""
+    h, w = x.shape[-2:]
+    ph, pw = -h % align, -w % align
+    if ph == 0 and pw == 0:
+        return x
+    if ph < h and pw < w:
+        return F.pad(x, (0, pw, 0, ph), mode="replicate")
+    # replicate padding is limited to the input size in some torch versions: repeat the edge
+    x = torch.cat([x, x[..., :, -1:].expand(*x.shape[:-1], pw)], dim=-1) if pw else x
+    return torch.cat([x, x[..., -1:, :].expand(*x.shape[:-2], ph, x.shape[-1])], dim=-2) if ph else x
+
+
+def receptive_radius(config: ModelConfig) -> int:
+    """An upper bound, in input pixels, on how far from an output pixel an input pixel can
+    change it (gradient channels and the 2x2 cells of the resampling steps included)."""
+    r = 1 + 1  # forward-difference gradients, then the unshuffle's 2x2 cell
+    jump = 2
+    r += jump  # stem conv3x3
+    for i in range(config.levels):
+        r += config.layers * jump  # each layer's one 3x3 conv
+        r += jump  # 2x2 pooling cell
+        jump *= 2
+    r += config.layers * jump  # bottom block
+    for i in reversed(range(config.levels)):
+        jump //= 2
+        r += jump  # nearest upsampling cell
+        r += config.layers * jump
+    return r + jump + 1  # tail / skip conv3x3 at half resolution, pixel-shuffle cell
+
+
+def conv_macs_per_pixel(model: nn.Module, height: int = 64, width: int = 64) -> float:
+    """Multiply-accumulates per input pixel of every convolution of ``model`` (measured with
+    forward hooks on one HxW image; for the multi-scale nets H, W multiples of the alignment)."""
+    total = 0
+
+    def hook(module: nn.Conv2d, _inputs: tuple, output: torch.Tensor) -> None:
+        nonlocal total
+        k = module.kernel_size[0] * module.kernel_size[1]
+        total += output.shape[-1] * output.shape[-2] * module.out_channels * k * module.in_channels // module.groups
+
+    handles = [m.register_forward_hook(hook) for m in model.modules() if isinstance(m, nn.Conv2d)]
+    try:
+        was = model.training
+        model.eval()
+        with torch.no_grad():
+            model(torch.zeros(1, model.config.image_channels, height, width))
+        model.train(was)
+    finally:
+        for h in handles:
+            h.remove()
+    return total / (height * width)
+
+
+def macs_per_pixel(config: ModelConfig, plain_scale: float | None = None, pool_first: bool = True) -> float:
+    """Multiply-accumulates per input pixel of every convolution, counted from the channel plan.
+
+    ``pool_first``: the transitions down pool before their 1x1 conv, as the folded inference
+    net does (:mod:`model.inference_unet`); False counts the training module, which convolves
+    first (what :func:`conv_macs_per_pixel` measures on it).
+    """
+    dense = config.arch == "dense_unet"
+    if plain_scale is None:
+        plain_scale = 1.0 if dense else plain_width_scale(config)
+    plan = _Widths(config, plain_scale)
+    n, layers, b = config.levels, config.layers, config.bottleneck
+    w = plan.width
+    share = [0.25 ** (i + 1) for i in range(n + 1)]  # pixels of level i per input pixel
+    cin4 = 4 * config.in_channels
+
+    def block(cin: int, i: int) -> tuple[float, int]:
+        k, mid = plan.growth[i], plan.mid[i]
+        if not dense:
+            return layers * (cin * mid + 9 * mid * cin) * share[i], cin
+        macs = sum((cin + j * k) * mid + 9 * mid * k for j in range(layers))
+        return macs * share[i], cin + layers * k
+
+    total = 9 * cin4 * w[0] * share[0]
+    enc_out = []
+    for i in range(n):
+        macs, e = block(w[i], i)
+        enc_out.append(e)
+        total += macs + e * w[i + 1] * share[i + 1 if pool_first else i]
+    macs, below = block(w[n], n)
+    total += macs
+    for i in reversed(range(n)):
+        total += below * w[i] * share[i + 1]
+        macs, below = block(w[i] + enc_out[i], i)
+        total += macs
+    return total + 9 * (below + cin4) * 12 * share[0]
+
+
+@functools.lru_cache(maxsize=64)
+def plain_width_scale(config: ModelConfig) -> float:
+    """Width factor of ``plain_unet`` whose MACs per pixel are closest to the ``dense_unet`` of
+    the same sizes (bisection on :func:`macs_per_pixel`)."""
+    plain = dataclasses.replace(config, arch="plain_unet")
+    target = macs_per_pixel(dataclasses.replace(config, arch="dense_unet"))
+    lo, hi = 0.25, 8.0
+    for _ in range(40):
+        mid = math.sqrt(lo * hi)
+        lo, hi = (mid, hi) if macs_per_pixel(plain, mid) < target else (lo, mid)
+    return round(math.sqrt(lo * hi), 4)

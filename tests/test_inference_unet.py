@@ -1,0 +1,48 @@
+"""The folded multi-scale network (model.inference_unet) equals the training module in eval mode.
+
+Tolerance: transfer-space outputs within 2e-5 absolute (float32 rounding of the folded weights,
+other summation orders), at odd sizes, 1x1, with and without the noise and aux inputs.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+import torch
+
+from model.architectures import prepare_for_inference
+from model.config import ModelConfig
+from model.inference_unet import InferenceUNet, _upsample_into
+from tests.test_model_unet import TINY, trained_like
+
+NET_ATOL = 2e-5
+
+
+@pytest.mark.parametrize("config", [
+    TINY,
+    dataclasses.replace(TINY, levels=3, layers=2, noise_input=True),
+    dataclasses.replace(TINY, arch="plain_unet", noise_input=True),
+    dataclasses.replace(TINY, output="direct", aux_inputs=True, noise_input=True),
+], ids=["dense", "dense-noise", "plain-noise", "direct-aux-noise"])
+def test_folded_unet_equals_the_training_module(config: ModelConfig) -> None:
+    model = trained_like(config)
+    before = {k: v.clone() for k, v in model.state_dict().items()}
+    net = prepare_for_inference(model)
+    assert isinstance(net, InferenceUNet) and not net.training
+    torch.manual_seed(1)
+    for h, w in ((1, 1), (19, 45), (32, 24)):
+        x = torch.rand(2, config.image_channels, h, w)
+        with torch.no_grad():
+            want, got = model(x), net(x)
+        assert got.shape == (2, 3, h, w)
+        torch.testing.assert_close(got, want, rtol=0, atol=NET_ATOL)
+    for key, value in model.state_dict().items():  # folding copies, never changes the model
+        assert torch.equal(value, before[key])
+
+
+def test_upsample_into_a_strided_slice() -> None:
+    buf = torch.zeros(1, 5, 4, 6).contiguous(memory_format=torch.channels_last)
+    low = torch.arange(1 * 2 * 2 * 3, dtype=torch.float32).view(1, 2, 2, 3)
+    _upsample_into(buf[:, 1:3], low)
+    torch.testing.assert_close(buf[:, 1:3], torch.nn.functional.interpolate(low, scale_factor=2.0))
+    assert buf[:, 0].eq(0).all() and buf[:, 3:].eq(0).all()

@@ -1,0 +1,136 @@
+"""The multi-scale networks (model.unet): shapes at any size, reach, alignment, plain-vs-dense cost."""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+from model.architectures import alignment, build_model, receptive_radius
+from model.config import PRESETS, ModelConfig
+from model.errors import ConfigError
+from model.infer import denoise_image
+from model.unet import MultiScaleDenoiser, conv_macs_per_pixel, pad_to_alignment
+
+TINY = ModelConfig(arch="dense_unet", layers=1, growth=4, init_features=8, levels=2, transfer="pu")
+
+
+def trained_like(config: ModelConfig, seed: int = 0) -> torch.nn.Module:
+    """A random multi-scale model with BN statistics of both signs and a non-zero tail, in eval mode."""
+    torch.manual_seed(seed)
+    model = build_model(config)
+    with torch.no_grad():
+        for m in model.modules():
+            if isinstance(m, torch.nn.BatchNorm2d):
+                m.running_mean.uniform_(-0.3, 0.3)
+                m.running_var.uniform_(0.3, 2.0)
+                m.weight.uniform_(-1.5, 1.5)
+                m.weight[0] = 0.0  # a dead channel
+                m.bias.uniform_(-0.3, 0.3)
+        torch.nn.init.normal_(model.tail.weight, std=0.05)
+        torch.nn.init.normal_(model.skip.weight, std=0.05)
+    return model.eval()
+
+
+MULTISCALE_PRESETS = [name for name, cfg in PRESETS.items() if cfg.multiscale]
+
+
+@pytest.mark.parametrize("name", MULTISCALE_PRESETS)
+def test_every_multiscale_preset_keeps_the_shape(name: str) -> None:
+    config = dataclasses.replace(PRESETS[name], noise_input=True)
+    model = build_model(config).eval()
+    for h, w in ((1, 1), (33, 70)):
+        x = torch.rand(1, config.image_channels, h, w)
+        with torch.no_grad():
+            assert model(x).shape == (1, 3, h, w)
+
+
+@pytest.mark.parametrize("h,w", [(1, 1), (1, 9), (9, 1), (5, 7), (16, 16), (31, 17)])
+@pytest.mark.parametrize("arch", ["dense_unet", "plain_unet"])
+def test_any_size_and_residual_identity_at_init(arch: str, h: int, w: int) -> None:
+    config = dataclasses.replace(TINY, arch=arch)
+    model = build_model(config).eval()
+    x = torch.rand(2, 3, h, w)
+    with torch.no_grad():
+        assert torch.equal(model(x), x)  # zero-initialised correction: the untrained model is the identity
+    direct = build_model(dataclasses.replace(config, output="direct")).eval()
+    with torch.no_grad():
+        out = direct(x)
+    assert out.shape == (2, 3, h, w) and torch.isfinite(out).all()
+
+
+def test_padding_replicates_the_edges() -> None:
+    x = torch.arange(6.0).view(1, 1, 2, 3)
+    padded = pad_to_alignment(x, 4)
+    assert padded.shape == (1, 1, 4, 4)
+    assert torch.equal(padded[..., :2, :3], x)
+    assert torch.equal(padded[0, 0, 3, :3], x[0, 0, 1]) and torch.equal(padded[0, 0, :2, 3], x[0, 0, :, 2])
+    assert pad_to_alignment(x[..., :1, :1], 8).eq(0.0).all()  # 1x1 -> 8x8 of its value
+
+
+def test_receptive_radius_bounds_the_influence_of_a_pixel() -> None:
+    config = dataclasses.replace(TINY, layers=1, levels=2)
+    model = trained_like(config)
+    r = receptive_radius(config)
+    size = 2 * r + 40
+    base = torch.rand(1, 3, size, size)
+    changed = base.clone()
+    y, x = 20, 20  # aligned far from the borders of the output pixel examined below
+    changed[0, :, y, x] += 5.0
+    with torch.no_grad():
+        diff = (model(changed) - model(base)).abs()[0].amax(dim=0)
+    reach = torch.nonzero(diff > 0)
+    dist = (reach - torch.tensor([y, x])).abs().amax(dim=1)
+    assert int(dist.max()) <= r  # nothing beyond the bound moves
+    assert int(dist.max()) >= r // 4  # and the bound is not wildly loose
+
+
+def test_tiled_inference_on_the_alignment_grid_equals_whole_image() -> None:
+    config = dataclasses.replace(TINY, noise_input=True)
+    model = trained_like(config)
+    rng = np.random.default_rng(3)
+    h, w = 2 * receptive_radius(config) + 37, receptive_radius(config) + 51
+    color = (rng.random((h, w, 3)) * 4).astype(np.float32)
+    variance = (rng.random((h, w, 3)) * 0.1).astype(np.float32)
+    whole = denoise_image(model, color, core=4096, variance=variance)
+    tiled = denoise_image(model, color, core=alignment(config) * 6, variance=variance)
+    np.testing.assert_allclose(tiled, whole, rtol=1e-5, atol=1e-6)
+
+
+def test_levels_are_validated() -> None:
+    with pytest.raises(ConfigError, match="levels must be in"):
+        ModelConfig(arch="dense_unet", levels=0)
+    with pytest.raises(ConfigError, match="levels must be 0"):
+        ModelConfig(arch="densenet", levels=2)
+    with pytest.raises(ValueError, match="not a multi-scale"):
+        MultiScaleDenoiser(ModelConfig())
+
+
+def test_plain_unet_costs_about_as_much_as_the_dense_one() -> None:
+    dense = conv_macs_per_pixel(build_model(TINY), 64, 64)
+    plain = conv_macs_per_pixel(build_model(dataclasses.replace(TINY, arch="plain_unet")), 64, 64)
+    assert plain == pytest.approx(dense, rel=0.1)
+
+
+def test_nothing_heavy_runs_at_full_resolution() -> None:
+    """Every convolution of the multi-scale net works at half resolution or below."""
+    model = build_model(dataclasses.replace(TINY, levels=3)).eval()
+    sizes = []
+    hooks = [m.register_forward_hook(lambda m, i, o: sizes.append(o.shape[-1]))
+             for m in model.modules() if isinstance(m, torch.nn.Conv2d)]
+    with torch.no_grad():
+        model(torch.rand(1, 3, 64, 64))
+    for h in hooks:
+        h.remove()
+    assert max(sizes) == 32 and min(sizes) == 4
+
+
+@pytest.mark.parametrize("arch", ["dense_unet", "plain_unet"])
+def test_macs_counted_from_the_plan_match_the_convolutions_run(arch: str) -> None:
+    from model.unet import macs_per_pixel
+
+    config = dataclasses.replace(TINY, arch=arch, levels=3, layers=2, noise_input=True)
+    measured = conv_macs_per_pixel(build_model(config), 64, 64)
+    assert macs_per_pixel(config, pool_first=False) == pytest.approx(measured, rel=1e-9)
+    assert macs_per_pixel(config) < measured  # the folded net pools before the transition's conv
