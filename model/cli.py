@@ -81,6 +81,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--gradient-weight", type=float,
                    help="share of the gradient L1 in the loss (default 0.1, the paper's; 0 = plain L1)")
     p.add_argument("--max-scenes", type=int, help="use only the dataset's scenes with index below this")
+    p.add_argument("--cpu-minutes", type=float,
+                   help="stop once the optimisation used this many process CPU minutes (all sittings)")
     p.add_argument("--micro-batch", type=int,
                    help="accumulate gradients over chunks of this size (faster; BatchNorm per chunk)")
     p.add_argument("--seed", type=int)
@@ -123,6 +125,8 @@ def _model_config(base: Any, args: argparse.Namespace) -> ModelConfig:
 def config_from_args(args: argparse.Namespace) -> tuple[TrainConfig, bool]:
     """(TrainConfig, resume?) from parsed flags; raises :class:`ConfigError` on conflicts."""
     flags = {field: getattr(args, dest) for dest, field in _FLAGS.items() if getattr(args, dest) is not None}
+    if args.cpu_minutes is not None:
+        flags["cpu_budget_s"] = 60.0 * args.cpu_minutes
     if args.resume:
         names = {"aux_inputs": "aux", "init_features": "width"}
         given = [f"--{names.get(k, k).replace('_', '-')}" for k in ("config", "preset", "patch", *_MODEL_FLAGS)
@@ -180,6 +184,8 @@ def main(argv: list[str] | None = None) -> int:
         config, resume = config_from_args(args)
         if args.nproc is not None and args.nproc < 1:
             raise ConfigError(f"--nproc must be >= 1, got {args.nproc}")
+        if config.cpu_budget_s and ((args.nproc or 1) > 1 or (rank is not None and rank.world > 1)):
+            raise ConfigError("--cpu-minutes applies to one process only (DDP ranks would stop at different steps)")
         if rank is None and args.nproc is not None and args.nproc > 1:
             ddp_config(config, args.nproc, resume)  # refuse before starting any process
             launch(args.nproc, sys.argv[1:] if argv is None else argv, Path(args.out), threads=config.threads,

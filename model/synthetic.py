@@ -41,14 +41,16 @@ def _noisy(rng: np.random.Generator, ref: np.ndarray, spp: int) -> np.ndarray:
 
 def write_synthetic_dataset(root: str | Path, scenes: int = 2, res: tuple[int, int] = (32, 32),
                             spp: Sequence[int] = (4, 16), val_scenes: Sequence[int] = (1,),
-                            aovs: bool = False, seed: int = 0) -> Path:
+                            aovs: bool = False, seed: int = 0, variance: bool = False) -> Path:
     """Write ``scenes`` scenes (indices 0..scenes-1; those in ``val_scenes`` in split "val") of
-    ``res`` = (W, H) pixels at each of ``spp`` plus a reference to ``root``; returns ``root``."""
+    ``res`` = (W, H) pixels at each of ``spp`` plus a reference to ``root``; returns ``root``.
+    ``variance``: also a variance image per noisy image (``ref^2 / spp``, the noise's variance),
+    as ``generate-dataset --variance`` writes."""
     root = Path(root)
     (root / "images").mkdir(parents=True, exist_ok=True)
     aov_names = ["alb", "nrm"] if aovs else []
     config = {"version": 1, "res": list(res), "spp": list(spp), "ref_spp": 4096, "aovs": aov_names,
-              "filter": "box", "synthetic": True}
+              "filter": "box", "synthetic": True, "variance": variance}
     (root / "dataset.json").write_text(json.dumps(config) + "\n", encoding="utf-8")
     lines = []
     for index in range(scenes):
@@ -58,11 +60,14 @@ def write_synthetic_dataset(root: str | Path, scenes: int = 2, res: tuple[int, i
         normal = np.broadcast_to(np.array([0.0, 0.6, 0.8], np.float32), ref.shape).copy()
         for s in spp:
             write_exr(root / "images" / image_name(index, s, "hdr"), _noisy(rng, ref, s))
+            if variance:
+                write_exr(root / "images" / image_name(index, s, "var"), ref * ref / np.float32(s))
             if aovs:
                 write_exr(root / "images" / image_name(index, s, "alb"), albedo)
                 write_exr(root / "images" / image_name(index, s, "nrm"), normal)
         split = "val" if index in val_scenes else "train"
         lines.append(json.dumps({"index": index, "scene": scene_name(index), "family": "synthetic",
-                                 "seed": seed, "split": split, "spp": list(spp), "aovs": aov_names}))
+                                 "seed": seed, "split": split, "spp": list(spp), "aovs": aov_names,
+                                 "variance_spp": list(spp) if variance else []}))
     (root / "manifest.jsonl").write_text("\n".join(lines) + "\n", encoding="utf-8")
     return root

@@ -72,6 +72,8 @@ class _LossMeter:
     skipped: int = 0
     started: float = field(default_factory=time.perf_counter)
     paused: float = 0.0  # seconds spent validating/checkpointing, left out of patches/s
+    started_cpu: float = field(default_factory=time.process_time)
+    paused_cpu: float = 0.0  # process CPU seconds spent validating/checkpointing
 
 
 def build_optimizer(model: torch.nn.Module, config: TrainConfig) -> torch.optim.Adam:
@@ -182,6 +184,7 @@ class _Run:
         self.guard = NonFiniteGuard(config.max_bad_steps, int(extra.get("skipped_total", 0)))
         self.meter = _LossMeter(**extra.get("meter", {}))
         self.train_s = float(extra.get("train_s", 0.0))  # optimisation seconds so far, all sittings
+        self.cpu_s = float(extra.get("cpu_s", 0.0))  # process CPU seconds of optimisation, all sittings
         # identity of the --init-from weights (the file at that path may be replaced later)
         self.init_from: dict[str, Any] | None = extra.get("init_from") if ckpt else (
             {"path": config.init_from, "sha256": file_sha256(Path(config.init_from))} if config.init_from else None)
@@ -240,19 +243,29 @@ class _Run:
         save_checkpoint(path, self.model, step=self.step, optimizer=self.optimizer,
                         train_config=self.config.to_dict(), data_config=self.data_config,
                         extra={"best_psnr": self.best_psnr, "skipped_total": self.guard.skipped_total,
-                               "meter": meter, "train_s": self.train_s, "init_from": self.init_from})
+                               "meter": meter, "train_s": self.train_s, "cpu_s": self.cpu_s,
+                               "init_from": self.init_from})
         if path == self.last_path:
             self.saved_step = self.step
+
+    def out_of_cpu(self) -> bool:
+        """True once the run's optimisation CPU seconds reached ``cpu_budget_s`` (if set)."""
+        budget = self.config.cpu_budget_s
+        if not budget:
+            return False
+        m = self.meter
+        return self.cpu_s + time.process_time() - m.started_cpu - m.paused_cpu >= budget
 
     def log_train(self) -> None:
         """Write the mean loss since the last train line and reset the meter."""
         m = self.meter
         elapsed = time.perf_counter() - m.started - m.paused
         self.train_s += max(elapsed, 0.0)
+        self.cpu_s += max(time.process_time() - m.started_cpu - m.paused_cpu, 0.0)
         self.log.append({"type": "train", "step": self.step, "loss": m.total / m.count if m.count else None,
                          "lr": self.config.lr_at(self.step - 1),
                          "skipped": m.skipped, "skipped_total": self.guard.skipped_total,
-                         "train_s": self.train_s,
+                         "train_s": self.train_s, "cpu_s": self.cpu_s,
                          "patches_per_s": (m.count + m.skipped) * self.config.batch / elapsed
                          if elapsed > 0 else None})
         self.meter = _LossMeter()
@@ -284,12 +297,13 @@ def _one_step(run: _Run, net: torch.nn.Module, source: BatchSource, bar: Progres
         run.meter.count += 1
     if run.step % config.log_every == 0 or run.step == config.steps:
         run.log_train()
-    paused = time.perf_counter()
+    paused, paused_cpu = time.perf_counter(), time.process_time()
     if config.val_every and (run.step % config.val_every == 0 or run.step == config.steps):
         run.validate()
     if run.step % config.ckpt_every == 0 or run.step == config.steps:
         run.save(run.last_path)
     run.meter.paused += time.perf_counter() - paused
+    run.meter.paused_cpu += time.process_time() - paused_cpu
     if bar is not None:
         bar.update(1)
         bar.set_postfix({"loss": f"{result.loss:.4g}", "lr": f"{lr:.3g}"}, refresh=False)
@@ -333,8 +347,12 @@ def run_training(run: _Run, progress: ProgressFactory | None = None) -> TrainRes
                 first_line = str(exc).splitlines()[0] if str(exc) else ""
                 raise TrainingError(f"torch.compile failed ({type(exc).__name__}: {first_line}); "
                                     f"train without --compile") from None
-        while run.step < config.steps:
+        while run.step < config.steps and not run.out_of_cpu():
             _one_step(run, net, source, bar)
+        if run.out_of_cpu() and run.meter.count + run.meter.skipped:  # stopped between log lines
+            run.log_train()
+            if config.val_every and run.step % config.val_every:
+                run.validate()
     finally:
         source.close()
         if bar is not None:

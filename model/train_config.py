@@ -31,7 +31,7 @@ from model.step import learning_rate
 # Fields that may differ on --resume without changing what is being trained.
 RESUMABLE_OVERRIDES = frozenset({
     "data", "steps", "log_every", "val_every", "ckpt_every", "max_bad_steps", "threads",
-    "channels_last", "fused_adam", "prefetch", "compile", "oidn", "val_tile", "progress",
+    "channels_last", "fused_adam", "prefetch", "compile", "oidn", "val_tile", "progress", "cpu_budget_s",
 })
 
 
@@ -51,6 +51,8 @@ class TrainConfig:
     ``gradient_weight``: share of the gradient L1 in the loss (the paper's 0.1; 0: plain L1).
     ``max_scenes`` > 0: train and validate on the scenes with index below it only (the dataset
     may hold more, e.g. while it is still being generated), so a run's data is fixed.
+    ``cpu_budget_s`` > 0: stop (validate and save) once the optimisation has used this many
+    process CPU seconds over all sittings — runs of different cost compared at equal CPU time.
     ``converged_pairs``: besides each scene's noisy renders, train on (reference, reference) — a
     converged input must come out unchanged (off in the paper; see README "Choices, measured").
     """
@@ -70,6 +72,7 @@ class TrainConfig:
     noise_dropout: float = 0.25
     gradient_weight: float = 0.1
     max_scenes: int = 0
+    cpu_budget_s: float = 0.0
     grad_clip: float | None = None
     init_from: str | None = None
     converged_pairs: bool = False
@@ -104,6 +107,8 @@ class TrainConfig:
             raise ConfigError(f"lr_decay must be in (0, 1], got {self.lr_decay!r}")
         if not (isinstance(self.lr_final, (int, float)) and 0 <= self.lr_final <= 1):
             raise ConfigError(f"lr_final must be in [0, 1], got {self.lr_final!r}")
+        if not (isinstance(self.cpu_budget_s, (int, float)) and self.cpu_budget_s >= 0):
+            raise ConfigError(f"cpu_budget_s must be >= 0, got {self.cpu_budget_s!r}")
         if not (isinstance(self.gradient_weight, (int, float)) and 0 <= self.gradient_weight <= 1):
             raise ConfigError(f"gradient_weight must be in [0, 1], got {self.gradient_weight!r}")
         if not (isinstance(self.noise_dropout, (int, float)) and 0 <= self.noise_dropout <= 1):

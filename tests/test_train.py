@@ -180,3 +180,48 @@ def test_config_precedence_defaults_file_flags(tmp_path: Path) -> None:
     assert (config.model.layers, config.model.growth, config.model.transfer, config.model.output) == \
         (10, 8, "pu", "direct")
     assert config.lr_decay == 0.9 and config.lr_decay_every == 10_000 and config.grad_clip is None
+
+
+def test_cpu_budget_stops_the_run_validated_and_saved(tmp_path: Path, dataset: Path) -> None:
+    """--cpu-minutes: the run stops once its optimisation used that much CPU, with a last log
+    line, a validation and last.ckpt at the step it reached; resuming with a larger budget goes on."""
+    from model.checkpoint import read_checkpoint
+
+    out = tmp_path / "run"
+    code = main(["--data", str(dataset), "--out", str(out), "--preset", "fast", "--steps", "100000",
+                     "--batch", "2", "--patch", "16", "--cpu-minutes", "0.02", "--val-every", "1000",
+                     "--log-every", "1000", "--no-progress", "--no-oidn", "--threads", "1"])
+    assert code == 0
+    log = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
+    trains = [r for r in log if r["type"] == "train"]
+    step = read_checkpoint(out / "last.ckpt").header["step"]
+    assert 0 < step < 100000 and trains[-1]["step"] == step
+    assert trains[-1]["cpu_s"] >= 0.02 * 60 and trains[-1]["cpu_s"] < 0.02 * 60 + 30
+    assert log[-1]["type"] == "val" and log[-1]["step"] == step
+    assert main(["--out", str(out), "--resume", "--cpu-minutes", "0.04", "--no-progress"]) == 0
+    assert read_checkpoint(out / "last.ckpt").header["step"] > step
+
+
+@pytest.fixture(scope="module")
+def noisy_dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return write_synthetic_dataset(tmp_path_factory.mktemp("dsv"), scenes=3, res=(64, 64), spp=(2, 8),
+                                   val_scenes=(2,), variance=True)
+
+
+def test_end_to_end_multiscale_with_noise_input(noisy_dataset: Path, tmp_path: Path) -> None:
+    """A tiny dense U-Net with noise input trains, validates with the variance images, resumes,
+    and its checkpoint rebuilds the model; a noise model refuses data without variance."""
+    run = tmp_path / "run"
+    flags = ["--arch", "dense_unet", "--levels", "2", "--layers", "1", "--growth", "4", "--width", "8",
+             "--transfer", "pu", "--noise-input", "--patch", "32", "--batch", "4", "--lr", "1e-3",
+             "--lr-cosine-steps", "8", "--log-every", "4", "--val-every", "4", "--no-progress", "--no-oidn"]
+    assert main(["--data", str(noisy_dataset), "--out", str(run), "--steps", "4", *flags]) == 0
+    assert main(["--out", str(run), "--resume", "--steps", "8", "--no-progress"]) == 0
+    model, config, meta = load_model(run / "last.ckpt")
+    assert config.arch == "dense_unet" and config.noise_input and meta["step"] == 8
+    vals = [r for r in _log(run) if r["type"] == "val"]
+    assert [r["step"] for r in vals] == [4, 8] and all(r["psnr"] is not None for r in vals)
+    lrs = [r["lr"] for r in _log(run) if r["type"] == "train"]
+    assert lrs[0] > lrs[1]  # cosine decay
+    plain = write_synthetic_dataset(tmp_path / "plain", scenes=2, res=(64, 64), spp=(2,), val_scenes=())
+    assert main(["--data", str(plain), "--out", str(tmp_path / "r2"), "--steps", "1", *flags]) == 1
