@@ -59,6 +59,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--width", dest="init_features", type=int, help="channels of the first conv / stem")
     p.add_argument("--noise-input", dest="noise_input", action="store_const", const=True,
                    help="also feed the render's noise (needs a dataset made with --variance)")
+    p.add_argument("--no-noise-input", dest="noise_input", action="store_const", const=False,
+                   help="do not feed the render's noise (overrides the preset)")
     p.add_argument("--noise-dropout", type=float,
                    help="share of patches whose noise channels are hidden (default 0.25)")
     p.add_argument("--transfer", choices=["log", "pu"])
