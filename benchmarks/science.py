@@ -179,7 +179,7 @@ def main() -> None:
     p.add_argument("--data", default="data/train256")
     p.add_argument("--runs", default="runs/science")
     p.add_argument("--cpu-minutes", type=float, default=20.0)
-    p.add_argument("--max-scenes", type=int, default=60)
+    p.add_argument("--max-scenes", type=int, default=40)
     args = p.parse_args()
     if args.what == "commands":
         print("\n".join(commands(args.data, Path(args.runs), args.cpu_minutes, args.max_scenes)))

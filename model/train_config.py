@@ -32,6 +32,7 @@ from model.step import learning_rate
 RESUMABLE_OVERRIDES = frozenset({
     "data", "steps", "log_every", "val_every", "ckpt_every", "max_bad_steps", "threads",
     "channels_last", "fused_adam", "prefetch", "compile", "oidn", "val_tile", "progress", "cpu_budget_s",
+    "max_scenes",  # more scenes of the same dataset (it grew): resuming on them is intended
 })
 
 
