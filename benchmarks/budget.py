@@ -29,8 +29,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from pipeline.atomic_io import write_text_atomic  # noqa: E402
-from pipeline.exr import read_exr  # noqa: E402
+from imaging.atomic_io import write_text_atomic  # noqa: E402
+from imaging.exr import read_exr  # noqa: E402
 from pipeline.run import RunConfig, run  # noqa: E402
 
 EVAL_DIR = ROOT.parent / "shared" / "eval-scenes"

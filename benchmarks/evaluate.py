@@ -35,13 +35,13 @@ from tqdm import tqdm
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from pipeline.atomic_io import write_text_atomic  # noqa: E402
+from imaging.atomic_io import write_text_atomic  # noqa: E402
+from imaging.errors import DenoiserError  # noqa: E402
+from imaging.exr import read_exr  # noqa: E402
+from imaging.metrics import flip, psnr, relmse  # noqa: E402
+from imaging.render import load_scene, prepare, render_loaded  # noqa: E402
 from pipeline.denoise import Denoiser  # noqa: E402
-from pipeline.errors import DenoiserError  # noqa: E402
-from pipeline.exr import read_exr  # noqa: E402
-from pipeline.metrics import flip, psnr, relmse  # noqa: E402
 from pipeline.oidn import oidn_denoise  # noqa: E402
-from pipeline.render import load_scene, prepare, render_loaded  # noqa: E402
 from pipeline.viewer import Page, Table, ViewerRow, ViewerSet, flip_map  # noqa: E402
 
 EVAL_DIR = ROOT.parent / "shared" / "eval-scenes"

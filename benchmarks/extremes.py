@@ -35,9 +35,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from pipeline.denoise import DEFAULT_WEIGHTS, Denoiser, file_sha256  # noqa: E402
-from pipeline.metrics import psnr  # noqa: E402
-from pipeline.render import render  # noqa: E402
+from pipeline.denoise import DEFAULT_WEIGHTS, Denoiser
+
+from imaging.hashing import file_sha256  # noqa: E402
+from imaging.metrics import psnr  # noqa: E402
+from imaging.render import render  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results" / "extremes.json"

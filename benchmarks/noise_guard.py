@@ -37,13 +37,13 @@ from tqdm import tqdm
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from pipeline.atomic_io import write_text_atomic  # noqa: E402
+from imaging.atomic_io import write_text_atomic  # noqa: E402
+from imaging.exr import read_exr  # noqa: E402
+from imaging.metrics import psnr  # noqa: E402
+from imaging.render import load_scene, prepare, render_loaded  # noqa: E402
 from pipeline.denoise import Denoiser  # noqa: E402
-from pipeline.exr import read_exr  # noqa: E402
-from pipeline.metrics import psnr  # noqa: E402
 from pipeline.noise_guard import DEFAULT_PIVOT_SPP, DEFAULT_RADIUS, guard, strength_for  # noqa: E402
 from pipeline.oidn import oidn_denoise  # noqa: E402
-from pipeline.render import load_scene, prepare, render_loaded  # noqa: E402
 
 EVAL_DIR = ROOT.parent / "shared" / "eval-scenes"
 DEMO = ROOT / "scenes" / "examples" / "demo.xml"

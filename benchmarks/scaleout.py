@@ -140,7 +140,7 @@ def _in_fresh_process(fn: Callable[..., dict[str, Any]], *args: Any) -> dict[str
 def _warm(cfg: DatasetConfig, threads: int | None) -> None:
     """Untimed, in a rendering process: select the variant, set Mitsuba's threads (None: all
     cores) and render one tiny scene, so start-up costs stay out of the timed run."""
-    from pipeline.backend import select_variant
+    from imaging.backend import select_variant
 
     select_variant()
     if threads:

@@ -28,8 +28,8 @@ from typing import Any
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from imaging.atomic_io import write_text_atomic  # noqa: E402
 from model.run_log import RunLog  # noqa: E402
-from pipeline.atomic_io import write_text_atomic  # noqa: E402
 
 BASE = ["--preset", "fast", "--transfer", "log", "--output", "residual", "--lr", "0.001"]
 RUNS: dict[str, list[str]] = {

@@ -11,10 +11,10 @@ import sys
 from tqdm import tqdm
 
 from dataset_gen.cluster import SchedulerSpec, parse_scheduler
-from dataset_gen.config import DatasetConfig, DatasetError
+from dataset_gen.config import DatasetConfig
 from dataset_gen.generate import generate_dataset
-from pipeline.errors import DenoiserError
-from pipeline.usage import OneLineParser
+from imaging.errors import DatasetError, DenoiserError
+from imaging.usage import OneLineParser
 
 
 def _int_list(text: str) -> tuple[int, ...]:

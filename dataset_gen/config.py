@@ -10,15 +10,11 @@ import json
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
-from pipeline.atomic_io import write_text_atomic
-from pipeline.errors import DenoiserError
+from imaging.atomic_io import write_text_atomic
+from imaging.errors import DatasetError
 
 CONFIG_NAME = "dataset.json"
 FORMAT_VERSION = 1
-
-
-class DatasetError(DenoiserError):
-    """A dataset folder cannot be used (other settings, unreadable config, bad manifest...)."""
 
 
 @dataclass(frozen=True)

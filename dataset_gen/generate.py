@@ -19,11 +19,12 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from dataset_gen.cluster import SchedulerSpec, render_on_cluster
-from dataset_gen.config import DatasetConfig, DatasetError, open_dataset
+from dataset_gen.config import DatasetConfig, open_dataset
 from dataset_gen.jobs import IMAGES_DIR, SCENES_DIR, run_job
 from dataset_gen.manifest import append_record, read_records, repair
-from pipeline.atomic_io import TMP_PREFIX
-from pipeline.backend import LLVM_VARIANT, resolve_variant
+from imaging.atomic_io import TMP_PREFIX
+from imaging.backend import LLVM_VARIANT, resolve_variant
+from imaging.errors import DatasetError
 
 
 class Progress(Protocol):
@@ -70,7 +71,7 @@ def remove_stale_temporaries(folder: Path) -> int:
 
 
 def _init_worker(threads: int) -> None:
-    from pipeline.backend import select_variant
+    from imaging.backend import select_variant
 
     select_variant()
     import drjit as dr

@@ -14,10 +14,10 @@ from typing import Any
 import numpy as np
 
 from dataset_gen.config import DatasetConfig
-from dataset_gen.naming import image_name, scene_name
-from pipeline.exr import write_exr
-from pipeline.metrics import RELMSE_EPS, tonemap
-from pipeline.render import load_scene, prepare, render_loaded
+from imaging.exr import write_exr
+from imaging.metrics import RELMSE_EPS, tonemap
+from imaging.naming import image_name, scene_name
+from imaging.render import load_scene, prepare, render_loaded
 
 IMAGES_DIR = "images"
 SCENES_DIR = "scenes"

@@ -11,7 +11,7 @@ import os
 from pathlib import Path
 from typing import Any
 
-from pipeline.atomic_io import write_text_atomic
+from imaging.atomic_io import write_text_atomic
 
 MANIFEST_NAME = "manifest.jsonl"
 

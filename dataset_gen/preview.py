@@ -8,9 +8,9 @@ import numpy as np
 from PIL import Image, ImageDraw
 
 from dataset_gen.jobs import IMAGES_DIR
-from dataset_gen.naming import image_name
-from pipeline.exr import read_exr
-from pipeline.png import save_png, to_display
+from imaging.exr import read_exr
+from imaging.naming import image_name
+from imaging.png import save_png, to_display
 
 PREVIEW_NAME = "preview.png"
 

@@ -22,11 +22,11 @@ from typing import Any
 import safetensors.torch
 import torch
 
-from model.config import ModelConfig
-from model.errors import CheckpointError, ConfigError
-from model.network import Denoiser
+from imaging.atomic_io import atomic_path
+from imaging.errors import CheckpointError, ConfigError
 from model.architectures import build_model
-from pipeline.atomic_io import atomic_path
+from model.config import ModelConfig
+from model.network import Denoiser
 
 FORMAT = "mc-densenet-denoiser-checkpoint"
 FORMAT_VERSION = 1

@@ -19,13 +19,12 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from imaging.errors import ConfigError, DenoiserError
+from imaging.usage import OneLineParser
 from model.config import ARCHS, PRESETS, ModelConfig, preset
 from model.distributed import RankInfo, ddp_config, launch, rank_from_env, train_distributed
-from model.errors import ConfigError
 from model.train import resume_config, train
 from model.train_config import RESUMABLE_OVERRIDES, TrainConfig
-from pipeline.errors import DenoiserError
-from pipeline.usage import OneLineParser
 
 _FLAGS = {  # argparse dest -> TrainConfig field
     "data": "data", "steps": "steps", "batch": "batch", "lr": "lr", "grad_clip": "grad_clip", "seed": "seed",

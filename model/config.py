@@ -23,7 +23,7 @@ import dataclasses
 from dataclasses import dataclass
 from typing import Any
 
-from model.errors import ConfigError
+from imaging.errors import ConfigError
 
 ARCHS = ("densenet", "plaincnn", "dense_unet", "plain_unet")
 FLAT_ARCHS = ("densenet", "plaincnn")

@@ -5,7 +5,7 @@ Layout (written by ``dataset_gen``)::
     DIR/dataset.json     {"version": 1, "res": [W, H], "spp": [...], "ref_spp": N, "aovs": [...], ...}
     DIR/manifest.jsonl   one JSON object per finished scene: index, scene, split ("train"|"val"),
                          spp, aovs, ...
-    DIR/images/          names from dataset_gen.naming.image_name only
+    DIR/images/          names from imaging.naming.image_name only
 
 Image paths are always ``DIR/images/image_name(index, spp, kind)``; the manifest never supplies a
 path. Radiance is sanitised on load (NaN -> 0, clamped to [0, HDR_MAX]); aux images are the RGB
@@ -22,13 +22,12 @@ from typing import Any
 import numpy as np
 import torch
 
-from dataset_gen.naming import image_name
-from model.errors import DatasetError
+from imaging.errors import DatasetError, ExrError
+from imaging.exr import read_exr
+from imaging.naming import image_name
 from model.noise_input import noise_channels
 from model.patches import TrainingPair
 from model.transfer import HDR_MAX, TransferFunction
-from pipeline.errors import ExrError
-from pipeline.exr import read_exr
 
 DATASET_VERSION = 1
 CONVERGED_SPP = 0  # TrainingPair.spp of a pair whose input is the reference itself

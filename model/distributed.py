@@ -52,8 +52,8 @@ import torch
 import torch.distributed as dist
 from torch import nn
 
+from imaging.errors import CheckpointError, ConfigError, TrainingError
 from model.checkpoint import Checkpoint, read_checkpoint
-from model.errors import CheckpointError, ConfigError, TrainingError
 from model.patches import TrainingPair
 from model.run_log import RunLog
 from model.train import BatchSource, ProgressFactory, TrainResult, _Run, run_training

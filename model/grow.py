@@ -12,8 +12,8 @@ from __future__ import annotations
 
 import torch
 
+from imaging.errors import ConfigError
 from model.config import ModelConfig
-from model.errors import ConfigError
 from model.network import Denoiser
 
 _SAME = ("arch", "growth", "init_features", "bottleneck", "transfer", "output", "aux_inputs")

@@ -4,7 +4,7 @@ exposure (an image whose log-average luminance lies outside the training data's 
 by a power of two towards the training median, undone at the end) -> sanitise (NaN/Inf/negative
 -> 0, > HDR_MAX clamped) -> transfer (+ the noise channels of :mod:`model.noise_input` for a model
 that takes them) -> network on core tiles with a margin of the receptive-field radius, on the
-network's alignment grid (exact: :mod:`pipeline.tiling`) -> clamp to [0, 1] in transfer space
+network's alignment grid (exact: :mod:`imaging.tiling`) -> clamp to [0, 1] in transfer space
 (radiance 0..HDR_MAX, so a wild output cannot overflow to Inf) -> inverse transfer -> undo the
 exposure. All of it tile by tile: no whole-image temporaries besides the output.
 
@@ -23,11 +23,11 @@ import numpy as np
 import torch
 from torch import nn
 
+from imaging.tiling import Tile, run_windows
 from model.architectures import alignment, receptive_radius
 from model.config import ModelConfig
 from model.noise_input import noise_channels
 from model.transfer import HDR_MAX, TransferFunction, get_transfer
-from pipeline.tiling import Tile, run_windows
 
 SKIP_CELL = 64  # pixels per side of the cells the skip test looks at (a multiple of every alignment <= 64)
 

@@ -12,7 +12,7 @@ import math
 from pathlib import Path
 from typing import Any
 
-from pipeline.atomic_io import atomic_path, write_text_atomic
+from imaging.atomic_io import atomic_path, write_text_atomic
 
 
 def _finite(value: Any) -> Any:

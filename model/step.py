@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import torch
 
-from model.errors import TrainingError
+from imaging.errors import TrainingError
 from model.loss import GRADIENT_WEIGHT, denoising_loss
 
 

@@ -13,8 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
-from dataset_gen.naming import image_name, scene_name
-from pipeline.exr import write_exr
+from imaging.exr import write_exr
+from imaging.naming import image_name, scene_name
 
 
 def _reference(rng: np.random.Generator, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:

@@ -21,12 +21,14 @@ from typing import Any, Protocol
 import numpy as np
 import torch
 
+from imaging.atomic_io import TMP_PREFIX, write_text_atomic
+from imaging.errors import ConfigError, DatasetError, DenoiserError, TrainingError
+from imaging.hashing import file_sha256
+from model.architectures import build_model
 from model.checkpoint import (Checkpoint, model_from_checkpoint, read_checkpoint, restore_optimizer,
                               restore_rng, save_checkpoint)
 from model.dataset import (load_training_pairs, load_val_images, read_dataset_config, read_manifest)
-from model.errors import ConfigError, DatasetError, ModelError, TrainingError
 from model.grow import grow_model
-from model.architectures import build_model
 from model.network import Denoiser
 from model.noise_input import drop_noise
 from model.patches import TrainingPair, sample_batch
@@ -35,8 +37,6 @@ from model.step import NonFiniteGuard, train_step
 from model.train_config import RESUMABLE_OVERRIDES, TrainConfig
 from model.transfer import get_transfer
 from model.validate import Validator
-from pipeline.atomic_io import TMP_PREFIX, write_text_atomic
-from pipeline.denoise import file_sha256
 
 # dataset.json fields a resumed run must see unchanged
 _DATA_KEYS = ("spp", "ref_spp", "filter", "aovs", "variance")
@@ -341,7 +341,7 @@ def run_training(run: _Run, progress: ProgressFactory | None = None) -> TrainRes
         if run.step < config.steps and config.compile:
             try:
                 _one_step(run, net, source, bar)
-            except ModelError:
+            except DenoiserError:  # ours (bad data, config...), not the compiler's
                 raise
             except Exception as exc:  # torch.compile reports missing compilers etc. in many types
                 first_line = str(exc).splitlines()[0] if str(exc) else ""

@@ -23,8 +23,8 @@ import dataclasses
 from dataclasses import dataclass, field
 from typing import Any
 
+from imaging.errors import ConfigError
 from model.config import ModelConfig, PRESETS
-from model.errors import ConfigError
 from model.patches import PatchConfig
 from model.step import learning_rate
 

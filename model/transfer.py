@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import torch
 
-from model.errors import ConfigError
+from imaging.errors import ConfigError
 
 HDR_MAX = 65504.0
 

@@ -25,7 +25,7 @@ Any H, W >= 1: the input is padded at the bottom and right by replicating its la
 up to a multiple of :func:`alignment` and the output cropped back. BatchNorm in eval mode is a
 per-channel affine map, so the network is translation-equivariant on the alignment grid:
 :func:`receptive_radius` bounds how far an output pixel looks, and tiles cut on the grid with that
-margin reproduce the whole-image output (:mod:`pipeline.tiling`).
+margin reproduce the whole-image output (:mod:`imaging.tiling`).
 """
 from __future__ import annotations
 

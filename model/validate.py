@@ -1,6 +1,6 @@
 """Validation on whole images: PSNR and relMSE of the model vs the noisy input vs OIDN, per spp.
 
-Metrics come from :mod:`pipeline.metrics` (tonemapped PSNR in dB, relMSE on linear radiance).
+Metrics come from :mod:`imaging.metrics` (tonemapped PSNR in dB, relMSE on linear radiance).
 The noisy-input and OIDN figures do not change during training, so they are computed once per
 validation image and cached. OIDN (colour only, ``pyoidn.denoise(color, hdr=True)``) is used when
 ``pyoidn`` imports and works; otherwise its entries are None.
@@ -15,9 +15,9 @@ from typing import Any
 import numpy as np
 import torch
 
+from imaging.metrics import psnr, relmse
 from model.dataset import ValImage
 from model.infer import denoise_image
-from pipeline.metrics import psnr, relmse
 
 Metrics = tuple[float, float]  # (PSNR dB, relMSE)
 

@@ -28,11 +28,11 @@ from typing import Any
 
 import numpy as np
 
+from imaging.errors import DenoiserError
+from imaging.render import render_loaded
+from imaging.tiling import plan_tiles
 from pipeline.denoise import WEIGHTS_DIR, Denoiser
-from pipeline.errors import DenoiserError
 from pipeline.pareto import error_at_spp, metric_error
-from pipeline.render import render_loaded
-from pipeline.tiling import plan_tiles
 
 DENOISE_SHARE = 1.0 / 3.0
 PROBE_SHARE = 0.05

@@ -6,8 +6,8 @@ import json
 import sys
 from pathlib import Path
 
-from pipeline.errors import DenoiserError
-from pipeline.usage import OneLineParser
+from imaging.errors import DenoiserError
+from imaging.usage import OneLineParser
 
 
 def _positive_int(text: str) -> int:

@@ -7,7 +7,6 @@ normals=...)`` returns the same kind of object it was given) but runs on the CPU
 """
 from __future__ import annotations
 
-import hashlib
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -15,12 +14,13 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from pipeline.errors import DenoiserError
+from imaging.errors import DenoiserError
+from imaging.hashing import file_sha256
+from imaging.tiling import core_for_budget, run_tiled
 from pipeline.noise_guard import DEFAULT_STRENGTH, blend, blend_weight, strength_for
-from pipeline.tiling import core_for_budget, run_tiled
 
 if TYPE_CHECKING:
-    from pipeline.render import RenderResult
+    from imaging.render import RenderResult
 
 WEIGHTS_DIR = Path(__file__).resolve().parents[1] / "model" / "weights"
 DEFAULT_WEIGHTS = WEIGHTS_DIR / "default.ckpt"
@@ -68,15 +68,6 @@ def count_invalid(rgb: np.ndarray) -> tuple[int, int]:
     with np.errstate(invalid="ignore"):  # no copies: this runs on 8K images
         negative = int(np.count_nonzero(rgb < 0)) - int(np.count_nonzero(np.isneginf(rgb)))
     return nonfinite, negative
-
-
-def file_sha256(path: Path) -> str:
-    """Hex SHA-256 of a file (model identity in reports)."""
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 class Denoiser:
@@ -142,7 +133,7 @@ class Denoiser:
         """Denoise HxWx3 linear radiance (any float dtype) with :func:`model.infer.denoise_image`.
 
         ``variance``: HxWx3 variance of ``rgb``'s Monte Carlo estimate (a render made of two
-        halves, :func:`pipeline.render.render_loaded`); given, the output is blended with the
+        halves, :func:`imaging.render.render_loaded`); given, the output is blended with the
         render where the render's noise does not explain the change (:mod:`pipeline.noise_guard`).
         """
         from model.infer import denoise_image
@@ -177,7 +168,7 @@ class Denoiser:
                              None if weights is None else weights[:, :, 0])
 
     def denoise_render(self, render: RenderResult) -> DenoiseResult:
-        """Denoise a render of :mod:`pipeline.render` with what it carries: its AOVs and, for a
+        """Denoise a render of :mod:`imaging.render` with what it carries: its AOVs and, for a
         render made in two halves, its variance with the noise guard's strength for its spp."""
         return self.denoise_array(render.rgb, render.aovs.get("albedo"), render.aovs.get("sh_normal"),
                                   render.variance, strength_for(render.spp))

@@ -2,9 +2,9 @@
 
 Inputs: an EXR (single- or multi-part, any number of layers, float16 or float32), a PFM or a
 Radiance HDR file; or two EXRs holding independent halves of one render (``halves``). The colour
-layer is :func:`pipeline.exr_layers.pick_color_layer`'s choice (or ``layer``); albedo and normal
+layer is :func:`imaging.exr_layers.pick_color_layer`'s choice (or ``layer``); albedo and normal
 layers beside it go to models that use them. The variance of the image's Monte Carlo estimate,
-from the halves (:func:`pipeline.noise_guard.half_variance`) or a variance layer, goes to the
+from the halves (:func:`imaging.render.half_variance`) or a variance layer, goes to the
 denoiser, which applies the noise guard with it. The output replaces the colour layer's channels
 and keeps every other layer, part and attribute (``rgb_only``: a plain RGB EXR); a ``.pfm`` or
 ``.hdr`` output path writes that format instead.
@@ -17,15 +17,16 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.bitmap_io import image_format, output_format, read_bitmap, write_bitmap
-from pipeline.denoise import Denoiser
-from pipeline.errors import DenoiserError, ExrError
-from pipeline.exr import write_exr
-from pipeline.exr_layers import (ALBEDO_WORDS, NORMAL_WORDS, VARIANCE_WORDS, ExrFile, Layer,
+from imaging.bitmap_io import image_format, output_format, read_bitmap, write_bitmap
+from imaging.errors import DenoiserError, ExrError
+from imaging.exr import write_exr
+from imaging.exr_layers import (ALBEDO_WORDS, NORMAL_WORDS, VARIANCE_WORDS, ExrFile, Layer,
                                  describe_layers, find_aux_layer, pick_color_layer, read_exr_file,
                                  replace_layer, write_exr_file)
-from pipeline.metrics import all_metrics
-from pipeline.noise_guard import DEFAULT_STRENGTH, half_variance, strength_for
+from imaging.metrics import all_metrics
+from imaging.render import half_variance
+from pipeline.denoise import Denoiser
+from pipeline.noise_guard import DEFAULT_STRENGTH, strength_for
 
 
 @dataclass

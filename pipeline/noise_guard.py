@@ -39,17 +39,6 @@ def strength_for(spp: int, pivot_spp: float = DEFAULT_PIVOT_SPP) -> float:
     return max(1.0, pivot_spp / spp)
 
 
-def half_variance(half_a: np.ndarray, half_b: np.ndarray, spp_a: int, spp_b: int) -> np.ndarray:
-    """Per-pixel, per-channel variance estimate of the combined mean of two independent halves."""
-    if half_a.shape != half_b.shape:
-        raise ValueError(f"halves differ in shape: {half_a.shape} vs {half_b.shape}")
-    if spp_a < 1 or spp_b < 1:
-        raise ValueError(f"each half needs at least one sample, got {spp_a} and {spp_b}")
-    n = spp_a + spp_b
-    diff = np.asarray(half_a, np.float64) - np.asarray(half_b, np.float64)
-    return (diff * diff * (spp_a * spp_b / (n * n))).astype(np.float32)
-
-
 def box_mean(img: np.ndarray, radius: int) -> np.ndarray:
     """Mean over a (2r+1)^2 window per channel of an HxWxC image, the window cut at the borders."""
     if radius < 0:

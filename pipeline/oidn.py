@@ -8,7 +8,7 @@ import time
 
 import numpy as np
 
-from pipeline.errors import DenoiserError
+from imaging.errors import DenoiserError
 
 
 def oidn_available() -> bool:

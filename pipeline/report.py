@@ -14,8 +14,8 @@ from typing import Any
 import numpy as np
 from PIL import Image, ImageDraw
 
-from pipeline.metrics import tonemap
-from pipeline.png import save_png, to_display
+from imaging.metrics import tonemap
+from imaging.png import save_png, to_display
 from pipeline.viewer import Page, Table, ViewerRow, ViewerSet, details, flip_map
 
 LABEL_H = 16

@@ -17,18 +17,18 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.atomic_io import TMP_PREFIX, write_text_atomic
+from imaging.atomic_io import TMP_PREFIX, write_text_atomic
+from imaging.errors import DenoiserError
+from imaging.exr import read_exr, write_exr
+from imaging.metrics import all_metrics
+from imaging.peak_rss import PeakRSS
+from imaging.png import save_png
+from imaging.render import load_scene, pass_seeds, prepare, render_loaded
 from pipeline.budget import budget_candidates, plan_run
 from pipeline.denoise import Denoiser
-from pipeline.errors import DenoiserError
-from pipeline.exr import read_exr, write_exr
-from pipeline.metrics import all_metrics
 from pipeline.noise_guard import DEFAULT_PIVOT_SPP, DEFAULT_RADIUS, strength_for
 from pipeline.oidn import oidn_available, oidn_denoise
-from pipeline.peak_rss import PeakRSS
-from pipeline.render import load_scene, pass_seeds, prepare, render_loaded
 from pipeline.report import comparison_image, write_previews, write_report
-from pipeline.png import save_png
 
 
 @dataclass

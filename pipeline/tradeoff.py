@@ -3,7 +3,7 @@
 For every spp the scene is rendered ``repeat`` times with the same seed (the same image; the
 median wall time is kept), then each denoiser — ``none`` (the raw render), each model, OIDN if
 asked — runs ``repeat`` times on it (median time). The image is compared with the reference
-(PSNR, relMSE, FLIP: :mod:`pipeline.metrics`). Kernels are compiled and the networks warmed up
+(PSNR, relMSE, FLIP: :mod:`imaging.metrics`). Kernels are compiled and the networks warmed up
 before anything is timed. Outputs (:mod:`pipeline.tradeoff_report`): ``tradeoff.json``,
 ``tradeoff.csv``, ``tradeoff.png`` and ``config.json`` (this run's :class:`TradeoffConfig`).
 """
@@ -20,15 +20,16 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from imaging.atomic_io import write_text_atomic
+from imaging.errors import DenoiserError
+from imaging.exr import read_exr
+from imaging.hashing import file_sha256
+from imaging.metrics import flip, psnr, relmse
+from imaging.render import RenderResult, load_scene, pass_seeds, prepare, render_loaded
 from model.config import PRESETS
-from pipeline.atomic_io import write_text_atomic
-from pipeline.denoise import Denoiser, file_sha256, resolve_model
-from pipeline.errors import DenoiserError
-from pipeline.exr import read_exr
-from pipeline.metrics import flip, psnr, relmse
+from pipeline.denoise import Denoiser, resolve_model
 from pipeline.oidn import oidn_denoise
 from pipeline.pareto import ERROR_OF_METRIC, equal_quality, metric_error, pareto_front
-from pipeline.render import RenderResult, load_scene, pass_seeds, prepare, render_loaded
 
 DEFAULT_SPP = (1, 2, 4, 8, 16, 32, 64, 128, 256, 512, 1024)
 DEFAULT_MODELS = ("fast", "balanced", "high")

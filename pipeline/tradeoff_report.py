@@ -2,7 +2,7 @@
 HTML report (:mod:`pipeline.viewer`'s page: plot and tables).
 
 All read the result dict of :func:`pipeline.tradeoff.measure` (seconds, metric values as
-:mod:`pipeline.metrics` computes them; the plotted error is :func:`pipeline.pareto.metric_error`).
+:mod:`imaging.metrics` computes them; the plotted error is :func:`pipeline.pareto.metric_error`).
 """
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ import math
 from pathlib import Path
 from typing import Any
 
-from pipeline.atomic_io import write_text_atomic
+from imaging.atomic_io import write_text_atomic
 from pipeline.pareto import ERROR_LABEL, metric_error
 from pipeline.viewer import Page, Table, details, png_figure
 

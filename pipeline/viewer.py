@@ -24,9 +24,9 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.atomic_io import write_text_atomic
-from pipeline.exr import HALF_MAX
-from pipeline.metrics import tonemap
+from imaging.atomic_io import write_text_atomic
+from imaging.exr import HALF_MAX
+from imaging.metrics import tonemap
 
 COLUMNS = [{"id": "image", "label": "image", "key": "i"},
            {"id": "flip", "label": "FLIP", "key": "f"},
@@ -85,7 +85,7 @@ def _colormap(name: str) -> list[int]:
 
 def flip_map(image: np.ndarray, reference: np.ndarray) -> np.ndarray:
     """HxW float32 FLIP error map in [0, 1] (LDR FLIP of the tonemapped images, as
-    :func:`pipeline.metrics.flip` averages it)."""
+    :func:`imaging.metrics.flip` averages it)."""
     import flip_evaluator
 
     test, ref = (np.ascontiguousarray(tonemap(x).astype(np.float32)) for x in (image, reference))

@@ -63,8 +63,8 @@ def write_demo_reference(folder: Path = EXAMPLES_DIR, spp: int = REFERENCE_SPP) 
     ``folder/demo_reference.exr`` (float16, its settings in the header); return the path."""
     from importlib import metadata
 
-    from pipeline.exr import write_exr
-    from pipeline.render import render
+    from imaging.exr import write_exr
+    from imaging.render import render
 
     result = render(folder / DEMO_NAME, spp, seed=REFERENCE_SEED, resolution=DEMO_RESOLUTION)
     path = folder / REFERENCE_NAME

@@ -24,9 +24,9 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.atomic_io import write_bytes_atomic, write_text_atomic
-from pipeline.backend import select_variant
-from pipeline.exr import write_exr
+from imaging.atomic_io import write_bytes_atomic, write_text_atomic
+from imaging.backend import select_variant
+from imaging.exr import write_exr
 from scenes.spec import GeneratedScene, check_asset_name
 
 _TAGS = {

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from pipeline.atomic_io import TMP_PREFIX, atomic_path, current_umask, write_text_atomic
+from imaging.atomic_io import TMP_PREFIX, atomic_path, current_umask, write_text_atomic
 
 
 def test_write_replaces_whole_file(tmp_path: Path) -> None:

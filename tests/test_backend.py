@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from pipeline.backend import (
+from imaging.backend import (
     MIN_LLVM_MAJOR,
     SCALAR_VARIANT,
     find_libllvm,

@@ -27,16 +27,16 @@ import torch
 
 from dataset_gen.cli import main as generate_main
 from dataset_gen.manifest import read_records
+from imaging.atomic_io import TMP_PREFIX
+from imaging.errors import SceneError
+from imaging.exr import read_exr, write_exr
+from imaging.scene_io import prepare_xml
 from model.checkpoint import read_checkpoint
 from model.cli import main as train_main
 from model.dataset import load_val_images, read_manifest
 from model.synthetic import write_synthetic_dataset
-from pipeline.atomic_io import TMP_PREFIX
 from pipeline.cli import denoise_main
 from pipeline.cli import main as render_main
-from pipeline.errors import SceneError
-from pipeline.exr import read_exr, write_exr
-from pipeline.scene_io import prepare_xml
 from tests.test_denoise import write_tiny_checkpoint
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -9,11 +9,11 @@ from typing import Any
 import numpy as np
 import pytest
 
+from imaging.tiling import plan_tiles
 from pipeline import budget
 from pipeline.budget import (BudgetError, RenderCost, budget_candidates, denoise_seconds, fit_spp,
                              load_curves, plan_budget, probe_render, window_pixels)
 from pipeline.cli import main
-from pipeline.tiling import plan_tiles
 from tests.test_denoise import write_tiny_checkpoint
 
 DEMO = Path(__file__).resolve().parents[1] / "scenes" / "examples" / "demo.xml"

@@ -17,12 +17,12 @@ import pytest
 from dataset_gen import cluster
 from dataset_gen.cli import main as cli_main
 from dataset_gen.code_version import PACKAGES, ROOT, CodeVersion, code_version, source_hash
-from dataset_gen.config import DatasetConfig, DatasetError
+from dataset_gen.config import DatasetConfig
 from dataset_gen.generate import generate_dataset
 from dataset_gen.jobs import run_job
 from dataset_gen.manifest import read_records
-from pipeline.atomic_io import TMP_PREFIX
-from pipeline.errors import SceneError
+from imaging.atomic_io import TMP_PREFIX
+from imaging.errors import DatasetError, SceneError
 
 pytest.importorskip("distributed")
 

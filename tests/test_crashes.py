@@ -20,12 +20,12 @@ import numpy as np
 import pytest
 import torch
 
+from imaging.atomic_io import TMP_PREFIX
+from imaging.exr import read_exr
 from model.checkpoint import read_checkpoint
 from model.cli import main as train_main
 from model.synthetic import write_synthetic_dataset
-from pipeline.atomic_io import TMP_PREFIX
 from pipeline.cli import main as render_main
-from pipeline.exr import read_exr
 from tests.test_denoise import write_tiny_checkpoint
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -14,12 +14,13 @@ import pytest
 
 from dataset_gen import jobs
 from dataset_gen.cli import main as cli_main
-from dataset_gen.config import DatasetConfig, DatasetError
+from dataset_gen.config import DatasetConfig
 from dataset_gen.generate import generate_dataset
 from dataset_gen.manifest import MANIFEST_NAME, append_record, read_records, repair
-from dataset_gen.naming import image_name
-from pipeline.atomic_io import TMP_PREFIX
-from pipeline.exr import read_exr
+from imaging.atomic_io import TMP_PREFIX
+from imaging.errors import DatasetError
+from imaging.exr import read_exr
+from imaging.naming import image_name
 
 TINY = DatasetConfig(res=(16, 16), spp=(1, 2), ref_spp=4, families=("cornell_box", "material_preview"), seed=3,
                      val_fraction=0.5)

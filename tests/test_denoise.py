@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 import torch
 
+from imaging.errors import DenoiserError
+from model.architectures import build_model
 from model.checkpoint import save_checkpoint
 from model.config import ModelConfig
-from model.architectures import build_model
 from pipeline.denoise import Denoiser, count_invalid
-from pipeline.errors import DenoiserError
 
 TINY = ModelConfig(layers=3, growth=4, init_features=8)
 

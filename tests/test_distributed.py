@@ -18,10 +18,10 @@ import numpy as np
 import pytest
 import torch
 
+from imaging.errors import ConfigError
 from model.checkpoint import read_checkpoint
 from model.cli import build_parser, main, resume_command
 from model.distributed import RankInfo, ShardSource, available_cpus, choose_threads, ddp_config, rank_from_env
-from model.errors import ConfigError
 from model.patches import TrainingPair
 from model.synthetic import write_synthetic_dataset
 from model.train import BatchSource

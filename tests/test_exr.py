@@ -6,8 +6,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.errors import ExrError
-from pipeline.exr import read_exr, write_exr
+from imaging.errors import ExrError
+from imaging.exr import read_exr, write_exr
 
 
 def _image(rng: np.random.Generator, h: int = 17, w: int = 23) -> np.ndarray:

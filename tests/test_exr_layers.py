@@ -8,8 +8,8 @@ import numpy as np
 import OpenEXR
 import pytest
 
-from pipeline.errors import ExrError
-from pipeline.exr_layers import (ALBEDO_WORDS, NORMAL_WORDS, find_aux_layer, pick_color_layer,
+from imaging.errors import ExrError
+from imaging.exr_layers import (ALBEDO_WORDS, NORMAL_WORDS, find_aux_layer, pick_color_layer,
                                  read_exr_file, replace_layer, write_exr_file)
 
 H, W = 12, 16

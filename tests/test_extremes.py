@@ -25,21 +25,21 @@ from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
+from imaging.exr import read_exr, write_exr
+from imaging.metrics import psnr
+from imaging.render import render
+from model.architectures import receptive_radius
+from model.architectures import build_model
 from model.checkpoint import read_checkpoint, save_checkpoint
 from model.cli import main as train_main
 from model.config import ModelConfig
-from model.architectures import receptive_radius
 from model.infer import denoise_image, exposure_scale
 from model.network import Denoiser as Network
-from model.architectures import build_model
 from model.step import NonFiniteGuard, train_step
 from model.synthetic import write_synthetic_dataset
 from model.transfer import HDR_MAX, get_transfer
 from pipeline.cli import denoise_main
 from pipeline.denoise import DEFAULT_WEIGHTS, Denoiser
-from pipeline.exr import read_exr, write_exr
-from pipeline.metrics import psnr
-from pipeline.render import render
 
 TINY = ModelConfig(layers=3, growth=4, init_features=8)
 RADIUS = receptive_radius(TINY)

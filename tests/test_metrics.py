@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 
-from pipeline import metrics
+from imaging import metrics
 
 
 def test_tonemap_known_values() -> None:

@@ -8,11 +8,11 @@ import pytest
 import safetensors.torch
 import torch
 
+from imaging.errors import CheckpointError
+from model.architectures import build_model
 from model.checkpoint import (load_model, read_checkpoint, restore_optimizer, restore_rng, save_checkpoint)
 from model.config import ModelConfig
-from model.errors import CheckpointError
 from model.loss import denoising_loss
-from model.architectures import build_model
 
 CONFIG = ModelConfig(layers=3, growth=4, init_features=8, transfer="pu", output="direct")
 

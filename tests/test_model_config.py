@@ -3,9 +3,9 @@ from __future__ import annotations
 
 import pytest
 
-from model.config import PRESETS, ModelConfig, preset
-from model.errors import ConfigError
+from imaging.errors import ConfigError
 from model.architectures import build_model, count_parameters
+from model.config import PRESETS, ModelConfig, preset
 from model.network import densenet_params
 
 # Documented in model/config.py; changing an architecture detail must update both.

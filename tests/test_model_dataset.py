@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 import torch
 
+from imaging.errors import DatasetError
+from imaging.exr import read_exr
 from model.dataset import CONVERGED_SPP, load_training_pairs, load_val_images, read_dataset_config, read_manifest
-from model.errors import DatasetError
 from model.synthetic import write_synthetic_dataset
 from model.transfer import get_transfer
-from pipeline.exr import read_exr
 
 
 @pytest.fixture(scope="module")

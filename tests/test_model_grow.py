@@ -7,14 +7,14 @@ from pathlib import Path
 import pytest
 import torch
 
+from imaging.errors import ConfigError
+from imaging.hashing import file_sha256
+from model.architectures import build_model
 from model.checkpoint import load_model, save_checkpoint
 from model.cli import main
 from model.config import ModelConfig
-from model.errors import ConfigError
 from model.grow import grow_model
-from model.architectures import build_model
 from model.synthetic import write_synthetic_dataset
-from pipeline.denoise import file_sha256
 
 SMALL = ModelConfig(layers=2, growth=4, init_features=8, transfer="pu")
 

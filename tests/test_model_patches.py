@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from model.errors import DatasetError
+from imaging.errors import DatasetError
 from model.patches import PatchConfig, TrainingPair, augment, sample_batch, unique_counts
 
 

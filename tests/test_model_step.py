@@ -4,10 +4,10 @@ from __future__ import annotations
 import pytest
 import torch
 
-from model.config import ModelConfig
-from model.errors import TrainingError
-from model.loss import denoising_loss
+from imaging.errors import TrainingError
 from model.architectures import build_model
+from model.config import ModelConfig
+from model.loss import denoising_loss
 from model.step import NonFiniteGuard, learning_rate, train_step
 
 TINY = ModelConfig(layers=2, growth=4, init_features=8)

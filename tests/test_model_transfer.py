@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from model.errors import ConfigError
+from imaging.errors import ConfigError
 from model.transfer import HDR_MAX, get_transfer
 
 NAMES = ("log", "pu")

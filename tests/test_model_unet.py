@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 import torch
 
+from imaging.errors import ConfigError
 from model.architectures import alignment, build_model, receptive_radius
 from model.config import PRESETS, ModelConfig
-from model.errors import ConfigError
 from model.infer import denoise_image
 from model.unet import MultiScaleDenoiser, conv_macs_per_pixel, pad_to_alignment
 

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import pytest
 
-from dataset_gen.naming import ImageName, image_name, parse_image_name, scene_name
+from imaging.naming import ImageName, image_name, parse_image_name, scene_name
 
 
 def test_names_follow_the_documented_pattern() -> None:

@@ -1,11 +1,11 @@
-"""The noise guard: variance from two halves, window means, the Wiener blend of render and denoiser."""
+"""The noise guard: window means, the Wiener blend of render and denoiser."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from pipeline.noise_guard import blend_weight, box_mean, guard, half_variance
-from pipeline.render import render
+from imaging.render import render
+from pipeline.noise_guard import blend_weight, box_mean, guard
 
 
 def _brute_box_mean(img: np.ndarray, r: int) -> np.ndarray:
@@ -21,26 +21,6 @@ def _brute_box_mean(img: np.ndarray, r: int) -> np.ndarray:
 def test_box_mean_matches_brute_force(radius: int) -> None:
     img = np.random.default_rng(0).random((7, 5, 2)).astype(np.float32)
     np.testing.assert_allclose(box_mean(img, radius), _brute_box_mean(img, radius), rtol=1e-5)
-
-
-@pytest.mark.parametrize("n_a,n_b", [(4, 4), (3, 5)])
-def test_half_variance_estimates_the_variance_of_the_mean(n_a: int, n_b: int) -> None:
-    """Halves with per-sample variance s^2: the mean of n_a + n_b samples has variance s^2/n."""
-    rng = np.random.default_rng(1)
-    s, shape = 0.5, (64, 64, 3)
-    a = 2.0 + rng.normal(0, s / np.sqrt(n_a), shape)
-    b = 2.0 + rng.normal(0, s / np.sqrt(n_b), shape)
-    estimate = half_variance(a, b, n_a, n_b)
-    assert estimate.dtype == np.float32 and estimate.shape == shape
-    # 12288 one-degree-of-freedom estimates: their mean has a relative std of sqrt(2/12288) = 1.3%.
-    assert estimate.mean() == pytest.approx(s**2 / (n_a + n_b), rel=0.05)
-
-
-def test_half_variance_refuses_bad_halves() -> None:
-    with pytest.raises(ValueError, match="shape"):
-        half_variance(np.zeros((2, 2, 3)), np.zeros((2, 3, 3)), 1, 1)
-    with pytest.raises(ValueError, match="at least one sample"):
-        half_variance(np.zeros((2, 2, 3)), np.zeros((2, 2, 3)), 0, 2)
 
 
 def test_zero_variance_keeps_the_render_and_infinite_variance_the_denoiser() -> None:

@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from imaging.exr import read_exr, write_exr
 from pipeline.cli import denoise_main, main
-from pipeline.exr import read_exr, write_exr
 from tests.test_denoise import write_tiny_checkpoint
 
 DEMO = Path(__file__).resolve().parents[1] / "scenes" / "examples" / "demo.xml"

@@ -9,10 +9,11 @@ from typing import Any
 import numpy as np
 import pytest
 
-from pipeline import render_crops
-from pipeline.errors import RenderError
-from pipeline.render import load_scene, pass_seeds, prepare, render, render_loaded, zero_nonfinite
-from pipeline.render_crops import crop_layout, crop_seed, film_window, max_crop_pixels
+from imaging import render_crops
+from imaging.errors import RenderError
+from imaging.render import (half_variance, load_scene, pass_seeds, prepare, render, render_loaded,
+                            zero_nonfinite)
+from imaging.render_crops import crop_layout, crop_seed, film_window, max_crop_pixels
 from tests.conftest import lit_plane_scene
 
 DEMO = Path(__file__).resolve().parents[1] / "scenes" / "examples" / "demo.xml"
@@ -188,7 +189,7 @@ def test_cropped_render_matches_one_piece_in_distribution(mi: Any) -> None:
 
 
 def test_peak_rss_sees_memory_held_in_the_block() -> None:
-    from pipeline.peak_rss import MB, PeakRSS
+    from imaging.peak_rss import MB, PeakRSS
 
     with PeakRSS() as memory:
         block = np.ones(64 * MB // 8)  # touched: resident
@@ -210,3 +211,23 @@ def test_render_and_denoise_renders_in_crops_and_reports_render_memory(tmp_path:
     memory = json.loads((out / "metrics.json").read_text())["render_memory"]
     assert memory["crops"] == 3 and memory["budget_mb"] == MIN_BUDGET_MB
     assert memory["start_mb"] > 0 and memory["peak_mb"] >= memory["start_mb"]
+
+
+@pytest.mark.parametrize("n_a,n_b", [(4, 4), (3, 5)])
+def test_half_variance_estimates_the_variance_of_the_mean(n_a: int, n_b: int) -> None:
+    """Halves with per-sample variance s^2: the mean of n_a + n_b samples has variance s^2/n."""
+    rng = np.random.default_rng(1)
+    s, shape = 0.5, (64, 64, 3)
+    a = 2.0 + rng.normal(0, s / np.sqrt(n_a), shape)
+    b = 2.0 + rng.normal(0, s / np.sqrt(n_b), shape)
+    estimate = half_variance(a, b, n_a, n_b)
+    assert estimate.dtype == np.float32 and estimate.shape == shape
+    # 12288 one-degree-of-freedom estimates: their mean has a relative std of sqrt(2/12288) = 1.3%.
+    assert estimate.mean() == pytest.approx(s**2 / (n_a + n_b), rel=0.05)
+
+
+def test_half_variance_refuses_bad_halves() -> None:
+    with pytest.raises(ValueError, match="shape"):
+        half_variance(np.zeros((2, 2, 3)), np.zeros((2, 3, 3)), 1, 1)
+    with pytest.raises(ValueError, match="at least one sample"):
+        half_variance(np.zeros((2, 2, 3)), np.zeros((2, 2, 3)), 0, 2)

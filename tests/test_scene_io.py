@@ -6,8 +6,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.errors import SceneError
-from pipeline.render import load_scene, prepare, render
+from imaging.errors import SceneError
+from imaging.render import load_scene, prepare, render
 
 FILM = """<scene version="3.0.0">
   <default name="res" value="24"/>
@@ -99,8 +99,8 @@ def test_shared_eval_scene_matches_its_recorded_noise() -> None:
         pytest.skip("../shared/eval-scenes is not beside this checkout")
     import json
 
-    from pipeline.exr import read_exr
-    from pipeline.metrics import psnr
+    from imaging.exr import read_exr
+    from imaging.metrics import psnr
 
     recorded = json.loads((root / "reference.json").read_text())["spp16"]["noisy_psnr"]
     noisy = render(root / "scene.xml", spp=16, seed=7).rgb

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.render import render
+from imaging.render import render
 from scenes.demo import DEMO_NAME, EXAMPLES_DIR, demo_scene
 from scenes.registry import FAMILIES, generate
 from scenes.spec import GeneratedScene, referenced_files

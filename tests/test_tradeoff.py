@@ -8,10 +8,10 @@ from pathlib import Path
 
 import pytest
 
+from imaging.errors import DenoiserError
 from pipeline import denoise
 from pipeline.cli import tradeoff_main
 from pipeline.oidn import oidn_available
-from pipeline.errors import DenoiserError
 from pipeline.tradeoff import Point, TradeoffConfig, analyse, model_labels
 from tests.test_denoise import write_tiny_checkpoint
 

@@ -59,7 +59,7 @@ def test_table_marks_the_best_cell_per_column() -> None:
 
 
 def test_flip_map_mean_is_the_flip_metric(rng: np.random.Generator) -> None:
-    from pipeline.metrics import flip
+    from imaging.metrics import flip
 
     a, b = rng.random((16, 16, 3)).astype(np.float32), rng.random((16, 16, 3)).astype(np.float32)
     error = flip_map(a, b)

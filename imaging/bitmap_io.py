@@ -9,9 +9,9 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.atomic_io import atomic_path
-from pipeline.errors import DenoiserError
-from pipeline.exr import EXR_MAGIC
+from imaging.atomic_io import atomic_path
+from imaging.errors import DenoiserError
+from imaging.exr import EXR_MAGIC
 
 FORMATS = ("exr", "pfm", "hdr")
 _WRITE_SUFFIX = {".pfm": "pfm", ".hdr": "hdr", ".rgbe": "hdr", ".pic": "hdr"}

@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from pipeline.errors import SceneError
+from imaging.errors import SceneError
 
 # AOV names we know how to render, mapped to Mitsuba's aov-integrator type and channel suffixes.
 AOV_TYPES: dict[str, tuple[str, tuple[str, str, str]]] = {

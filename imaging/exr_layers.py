@@ -19,9 +19,9 @@ from typing import Any
 import numpy as np
 import OpenEXR
 
-from pipeline.atomic_io import atomic_path
-from pipeline.errors import ExrError
-from pipeline.exr import check_exr_file, plane, quiet_native_output
+from imaging.atomic_io import atomic_path
+from imaging.errors import ExrError
+from imaging.exr import check_exr_file, plane, quiet_native_output
 
 COLOR_WORDS = ("color", "colour", "rgb", "rgba", "beauty", "combined", "image", "noisy image")
 ALBEDO_WORDS = ("albedo", "denoising albedo")

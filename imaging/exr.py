@@ -19,8 +19,8 @@ from pathlib import Path
 import numpy as np
 import OpenEXR
 
-from pipeline.atomic_io import atomic_path
-from pipeline.errors import ExrError
+from imaging.atomic_io import atomic_path
+from imaging.errors import ExrError
 
 XYZ_LAYERS = ("normal", "sh_normal", "nrm")
 HALF_MAX = 65504.0  # largest finite float16

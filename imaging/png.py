@@ -6,8 +6,8 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from pipeline.atomic_io import atomic_path
-from pipeline.metrics import tonemap
+from imaging.atomic_io import atomic_path
+from imaging.metrics import tonemap
 
 
 def to_display(rgb: np.ndarray) -> np.ndarray:

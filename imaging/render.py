@@ -1,9 +1,9 @@
 """The rendering core: load a prepared scene, render at a given spp/seed, return linear radiance.
 
-Every render goes through :mod:`pipeline.scene_io`, so it uses a box pixel filter and a float32
+Every render goes through :mod:`imaging.scene_io`, so it uses a box pixel filter and a float32
 film. Large sample counts are split into passes (independent seeds) of at most
 ``max_samples_per_pass`` samples, whose mean is returned. A film too large for the memory budget
-is rendered in crops (:mod:`pipeline.render_crops`), each written straight into the output images.
+is rendered in crops (:mod:`imaging.render_crops`), each written straight into the output images.
 """
 from __future__ import annotations
 
@@ -17,10 +17,10 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.backend import select_variant
-from pipeline.errors import RenderError, SceneError
-from pipeline.render_crops import Crop, crop_layout, crop_seed, cropped, film_window, max_crop_pixels
-from pipeline.scene_io import AOV_TYPES, PreparedScene, prepare_dict, prepare_xml
+from imaging.backend import select_variant
+from imaging.errors import RenderError, SceneError
+from imaging.render_crops import Crop, crop_layout, crop_seed, cropped, film_window, max_crop_pixels
+from imaging.scene_io import AOV_TYPES, PreparedScene, prepare_dict, prepare_xml
 
 DEFAULT_MAX_SAMPLES_PER_PASS = 1 << 24
 DEFAULT_MAX_MEMORY_MB = 1024.0  # the commands' --max-memory-mb default
@@ -44,7 +44,7 @@ class RenderResult:
     seconds: float = 0.0
     variant: str = ""
     variance: np.ndarray | None = None  # HxWx3 variance of ``rgb``'s estimate (``halves`` renders)
-    crops: int = 1  # film crops rendered one after the other (pipeline.render_crops)
+    crops: int = 1  # film crops rendered one after the other (imaging.render_crops)
 
 
 def _one_line(exc: BaseException) -> str:
@@ -105,7 +105,7 @@ def prepare(
     params: Mapping[str, Any] | None = None,
     base_dir: str | Path | None = None,
 ) -> PreparedScene:
-    """Prepare a scene file path or scene dict (see :mod:`pipeline.scene_io`).
+    """Prepare a scene file path or scene dict (see :mod:`imaging.scene_io`).
 
     ``base_dir`` resolves a dict scene's relative asset paths (XML scenes use their own folder).
     """
@@ -168,8 +168,6 @@ def _render_crop(scene: Any, spp: int, seed: int, max_samples_per_pass: int,
     """The film's current crop window: float64 HxWxC mean and, for ``halves``, its variance."""
     if not halves:
         return _accumulate(scene, spp, seed, max_samples_per_pass), None
-    from pipeline.noise_guard import half_variance
-
     n_a = spp // 2
     seed_b = pass_seeds(seed ^ 0x5A5A5A5A, 2)[1]
     a = _accumulate(scene, n_a, seed, max_samples_per_pass)
@@ -180,6 +178,17 @@ def _render_crop(scene: Any, spp: int, seed: int, max_samples_per_pass: int,
     b *= (spp - n_a) / spp
     a += b
     return a, variance
+
+
+def half_variance(half_a: np.ndarray, half_b: np.ndarray, spp_a: int, spp_b: int) -> np.ndarray:
+    """Per-pixel, per-channel variance estimate of the combined mean of two independent halves."""
+    if half_a.shape != half_b.shape:
+        raise ValueError(f"halves differ in shape: {half_a.shape} vs {half_b.shape}")
+    if spp_a < 1 or spp_b < 1:
+        raise ValueError(f"each half needs at least one sample, got {spp_a} and {spp_b}")
+    n = spp_a + spp_b
+    diff = np.asarray(half_a, np.float64) - np.asarray(half_b, np.float64)
+    return (diff * diff * (spp_a * spp_b / (n * n))).astype(np.float32)
 
 
 def _store(acc: np.ndarray, outputs: list[np.ndarray], crop: Crop) -> int:
@@ -207,10 +216,10 @@ def render_loaded(
 
     ``halves`` (spp >= 2): render the samples as two independent halves (seeds ``seed`` and a mix
     of it) and also return ``variance``, the per-pixel variance estimate of the combined mean
-    (:func:`pipeline.noise_guard.half_variance`); the image has the same expectation and spp.
+    (:func:`half_variance`); the image has the same expectation and spp.
 
     ``max_memory_mb`` bounds the render's scratch memory beyond the returned images: a film whose
-    pixels do not fit is rendered in crops with seeds of their own (:mod:`pipeline.render_crops`;
+    pixels do not fit is rendered in crops with seeds of their own (:mod:`imaging.render_crops`;
     None: one piece). The image is a deterministic function of (scene, spp, seed, aovs, halves,
     crop layout); a render in one crop (any film that fits) is the same whatever the budget; other
     layouts draw other samples from the same distribution.
