@@ -12,12 +12,12 @@ from model import unet
 from model.config import ModelConfig
 from model.inference_net import InferenceNet
 from model.inference_unet import InferenceUNet
-from model.network import Denoiser
+from model.network import FlatDenseNet
 
 
 def build_model(config: ModelConfig) -> nn.Module:
     """A freshly initialised (He init, current torch RNG) float32 model on the CPU."""
-    return unet.MultiScaleDenoiser(config) if config.multiscale else Denoiser(config)
+    return unet.MultiScaleDenoiser(config) if config.multiscale else FlatDenseNet(config)
 
 
 def receptive_radius(config: ModelConfig) -> int:

@@ -26,7 +26,6 @@ from imaging.atomic_io import atomic_path
 from imaging.errors import CheckpointError, ConfigError
 from model.architectures import build_model
 from model.config import ModelConfig
-from model.network import Denoiser
 
 FORMAT = "mc-densenet-denoiser-checkpoint"
 FORMAT_VERSION = 1
@@ -47,7 +46,7 @@ class Checkpoint:
         return {k[len(prefix):]: v for k, v in self.tensors.items() if k.startswith(prefix)}
 
 
-def save_checkpoint(path: str | Path, model: Denoiser, *, step: int,
+def save_checkpoint(path: str | Path, model: torch.nn.Module, *, step: int,
                     optimizer: torch.optim.Optimizer | None = None,
                     train_config: dict[str, Any] | None = None, data_config: dict[str, Any] | None = None,
                     extra: dict[str, Any] | None = None) -> None:
@@ -120,7 +119,7 @@ def read_checkpoint(path: str | Path) -> Checkpoint:
     return Checkpoint(path, header, tensors)
 
 
-def model_from_checkpoint(ckpt: Checkpoint) -> Denoiser:
+def model_from_checkpoint(ckpt: Checkpoint) -> torch.nn.Module:
     """Rebuild the network from the header's model config and load its weights (strict)."""
     try:
         config = ModelConfig.from_dict(ckpt.header.get("model_config"))
@@ -142,7 +141,7 @@ def model_from_checkpoint(ckpt: Checkpoint) -> Denoiser:
     return model
 
 
-def load_model(path: str | Path) -> tuple[Denoiser, ModelConfig, dict[str, Any]]:
+def load_model(path: str | Path) -> tuple[torch.nn.Module, ModelConfig, dict[str, Any]]:
     """(model in eval mode, its config, header without tensors) rebuilt from the file alone."""
     ckpt = read_checkpoint(path)
     model = model_from_checkpoint(ckpt)

@@ -14,7 +14,7 @@ import torch
 
 from imaging.errors import ConfigError
 from model.config import ModelConfig
-from model.network import Denoiser
+from model.network import FlatDenseNet
 
 _SAME = ("arch", "growth", "init_features", "bottleneck", "transfer", "output", "aux_inputs")
 
@@ -32,7 +32,7 @@ def check_growable(source: ModelConfig, target: ModelConfig) -> None:
 
 
 @torch.no_grad()
-def grow_model(target: Denoiser, source: Denoiser) -> None:
+def grow_model(target: FlatDenseNet, source: FlatDenseNet) -> None:
     """Overwrite ``target``'s head, first layers and tail with ``source``'s (see module docstring).
 
     ``target``'s extra layers keep their current (He) init. Raises :class:`ConfigError` if the

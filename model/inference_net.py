@@ -1,4 +1,4 @@
-"""An inference-only copy of a trained :class:`model.network.Denoiser`: same function, less work.
+"""An inference-only copy of a trained :class:`model.network.FlatDenseNet`: same function, less work.
 
 What changes against the training module (eval mode), and why it is exact up to float32 rounding:
 
@@ -28,7 +28,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from model.config import ModelConfig
-from model.network import Denoiser, network_input
+from model.network import FlatDenseNet, network_input
 
 
 def bn_affine(bn: nn.BatchNorm2d) -> tuple[torch.Tensor, torch.Tensor]:
@@ -131,9 +131,9 @@ class _ClampConv1x1(nn.Module):
 
 
 class InferenceNet(nn.Module):
-    """The folded, concatenation-free, channels_last equivalent of a Denoiser in eval mode."""
+    """The folded, concatenation-free, channels_last equivalent of a FlatDenseNet in eval mode."""
 
-    def __init__(self, model: Denoiser) -> None:
+    def __init__(self, model: FlatDenseNet) -> None:
         super().__init__()
         self.config: ModelConfig = model.config
         self.width = model.body.out_channels

@@ -73,7 +73,7 @@ class PlainStack(nn.Module):
         return self.layers(x)
 
 
-class Denoiser(nn.Module):
+class FlatDenseNet(nn.Module):
     """7x7 conv (+BN, ReLU) -> body -> BN-ReLU-Conv3x3 -> RGB, plus the residual input if asked.
 
     Input: Nx3xHxW (or Nx9xHxW with aux) float32 in transfer space. Output: Nx3xHxW transfer-space

@@ -29,7 +29,6 @@ from model.checkpoint import (Checkpoint, model_from_checkpoint, read_checkpoint
                               restore_rng, save_checkpoint)
 from model.dataset import (load_training_pairs, load_val_images, read_dataset_config, read_manifest)
 from model.grow import grow_model
-from model.network import Denoiser
 from model.noise_input import drop_noise
 from model.patches import TrainingPair, sample_batch
 from model.run_log import RunLog, plot_curves
@@ -206,7 +205,7 @@ class _Run:
         _remove_temporaries(self.dir)
         return None
 
-    def _build(self, ckpt: Checkpoint | None) -> tuple[Denoiser, torch.optim.Adam]:
+    def _build(self, ckpt: Checkpoint | None) -> tuple[torch.nn.Module, torch.optim.Adam]:
         if ckpt is None:
             torch.manual_seed(self.config.seed)
             model = build_model(self.config.model)

@@ -34,7 +34,7 @@ from model.checkpoint import read_checkpoint, save_checkpoint
 from model.cli import main as train_main
 from model.config import ModelConfig
 from model.infer import denoise_image, exposure_scale
-from model.network import Denoiser as Network
+from model.network import FlatDenseNet
 from model.step import NonFiniteGuard, train_step
 from model.synthetic import write_synthetic_dataset
 from model.transfer import HDR_MAX, get_transfer
@@ -50,7 +50,7 @@ shipped = pytest.mark.skipif(not DEFAULT_WEIGHTS.exists(), reason="no shipped we
 SPECIAL = [0.0, 1e-8, 1e-4, 1.0, 1e3, 1e6, 65504.0, 7e4, 3e38, -1.0, -1e6, math.nan, math.inf, -math.inf]
 
 
-def random_network(config: ModelConfig = TINY, seed: int = 0) -> Network:
+def random_network(config: ModelConfig = TINY, seed: int = 0) -> FlatDenseNet:
     """An untrained network that is not the identity: random BatchNorm statistics, random last conv."""
     torch.manual_seed(seed)
     model = build_model(config)
@@ -63,7 +63,7 @@ def random_network(config: ModelConfig = TINY, seed: int = 0) -> Network:
     return model.eval()
 
 
-def identity_network(transfer: str) -> Network:
+def identity_network(transfer: str) -> FlatDenseNet:
     """A residual network whose correction is exactly zero: the chain without the learning."""
     model = build_model(dataclasses.replace(TINY, transfer=transfer))
     with torch.no_grad():

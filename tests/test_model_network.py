@@ -6,7 +6,7 @@ import torch
 
 from model.architectures import build_model
 from model.config import PRESETS, ModelConfig, preset
-from model.network import Denoiser, DenseBlock, PlainStack, gradient_channels, network_input
+from model.network import FlatDenseNet, DenseBlock, PlainStack, gradient_channels, network_input
 
 TINY = ModelConfig(layers=2, growth=4, init_features=8)
 
@@ -67,7 +67,7 @@ def test_residual_and_direct_modes() -> None:
     torch.manual_seed(0)
     img = torch.rand(1, 3, 9, 9)
     for output in ("residual", "direct"):
-        model = Denoiser(ModelConfig(layers=2, growth=4, init_features=8, output=output)).eval()
+        model = FlatDenseNet(ModelConfig(layers=2, growth=4, init_features=8, output=output)).eval()
         torch.nn.init.zeros_(model.tail[-1].weight)
         with torch.no_grad():
             out = model(img)
