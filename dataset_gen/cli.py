@@ -46,13 +46,13 @@ def _scheduler(text: str) -> SchedulerSpec:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from scenes.registry import FAMILIES
+    from scenes.registry import DEFAULT_FAMILIES, FAMILIES
 
     p = OneLineParser(prog="generate-dataset", description=__doc__.split("\n")[0])
     p.add_argument("--scenes", type=int, required=True, help="number of scenes (indices 0..N-1)")
     p.add_argument("--out", required=True, help="dataset folder (created; resumed if it exists)")
     p.add_argument("--families", type=lambda s: tuple(f for f in s.split(",") if f),
-                   default=tuple(FAMILIES), help=f"comma-separated subset of: {', '.join(FAMILIES)}")
+                   default=DEFAULT_FAMILIES, help=f"comma-separated subset of: {', '.join(FAMILIES)}")
     p.add_argument("--spp", type=_int_list, default=(4, 16, 64, 128), help="noisy sample counts")
     p.add_argument("--ref-spp", type=int, default=4096, help="reference samples (two halves)")
     p.add_argument("--res", type=_resolution, default=(128, 128), help="N or WxH pixels")

@@ -104,3 +104,8 @@ def random_bsdf(rng: np.random.Generator, weights: Mapping[str, float] | None = 
     if kind == "dielectric":
         return dielectric(rng)
     return roughdielectric(rng)
+
+
+def null() -> BSDF:
+    """An invisible, index-matched boundary: it only marks where a shape's medium begins."""
+    return {"type": "null"}

@@ -1,4 +1,9 @@
-"""The scene families by name, and ``generate(family, seed)``."""
+"""The scene families by name, and ``generate(family, seed)``.
+
+``FAMILIES`` holds every family; ``DEFAULT_FAMILIES`` names those a dataset uses unless told
+otherwise (the original nine, in their original order: datasets generated with the default stay
+reproducible as families are added).
+"""
 from __future__ import annotations
 
 from collections.abc import Callable
@@ -9,6 +14,7 @@ from scenes.families import (
     env_objects,
     indoor_room,
     material_preview,
+    media,
     small_emitters,
     terrain,
     textured_surfaces,
@@ -26,7 +32,12 @@ FAMILIES: dict[str, Callable[[int], GeneratedScene]] = {
     "textured_surfaces": textured_surfaces.generate,
     "terrain": terrain.generate,
     "veach_mis": veach_mis.generate,
+    "media": media.generate,
 }
+DEFAULT_FAMILIES: tuple[str, ...] = (
+    "cornell_box", "material_preview", "indoor_room", "env_objects", "caustics", "small_emitters",
+    "textured_surfaces", "terrain", "veach_mis",
+)
 MAX_SEED = 2**63 - 1
 
 

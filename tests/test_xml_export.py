@@ -121,6 +121,31 @@ def test_write_scene_writes_assets_and_renders_like_the_dict(tmp_path, rng):
     assert small.shape == (4, 6, 3)
 
 
+def test_media_are_written_nested_and_by_reference_and_render_like_the_dict(tmp_path):
+    fog = {"type": "homogeneous", "albedo": {"type": "rgb", "value": [0.9, 0.8, 0.7]},
+           "sigma_t": 1.0, "scale": 0.2, "phase": {"type": "hg", "g": 0.5}}
+    scene = _scene(integrator={"type": "volpath", "max_depth": 8, "rr_depth": 4})
+    scene = {"type": "scene", "fog": fog, **{k: v for k, v in scene.items() if k != "type"}}
+    scene["sensor"]["medium"] = {"type": "ref", "id": "fog"}
+    inside = {"type": "homogeneous", "sigma_t": {"type": "rgb", "value": [1.0, 0.5, 0.2]},
+              "scale": 8.0, "albedo": {"type": "rgb", "value": 0.95}, "sample_emitters": False}
+    scene["ball"] = {"type": "sphere", "radius": 0.5, "bsdf": {"type": "dielectric"},
+                     "interior": inside}
+    root = ET.fromstring(scene_to_xml(scene))
+    assert root.find("medium[@id='fog']").get("type") == "homogeneous"
+    assert root.find("medium[@id='fog']/phase[@name='phase']").get("type") == "hg"
+    assert root.find("sensor/ref").attrib == {"name": "medium", "id": "fog"}
+    interior = root.find("shape[@id='ball']/medium[@name='interior']")
+    assert interior.get("type") == "homogeneous"
+    assert interior.find("rgb[@name='sigma_t']").get("value") == "1.0, 0.5, 0.2"
+    assert interior.find("boolean").attrib == {"name": "sample_emitters", "value": "false"}
+    path = write_scene(GeneratedScene("test", 0, scene), tmp_path)
+    a = render(scene, spp=4, seed=2).rgb
+    b = render(path, spp=4, seed=2).rgb
+    assert a.mean() > 0.0
+    np.testing.assert_allclose(b, a, rtol=0, atol=1e-5)
+
+
 def test_write_scene_writes_bytes_assets_verbatim(tmp_path):
     from scenes.meshes import heightfield
 
