@@ -8,23 +8,12 @@ from __future__ import annotations
 import argparse
 import sys
 
-from tqdm import tqdm
-
 from dataset_gen.cluster import SchedulerSpec, parse_scheduler
 from dataset_gen.config import DatasetConfig
 from dataset_gen.generate import generate_dataset
 from imaging.errors import DatasetError, DenoiserError
-from imaging.usage import OneLineParser
-
-
-def _int_list(text: str) -> tuple[int, ...]:
-    try:
-        values = tuple(int(v) for v in text.split(",") if v.strip())
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}") from None
-    if not values or min(values) < 1:
-        raise argparse.ArgumentTypeError(f"expected positive integers, got {text!r}")
-    return values
+from imaging.progress import tqdm_bars
+from imaging.usage import OneLineParser, int_list, name_list
 
 
 def _resolution(text: str) -> tuple[int, int]:
@@ -51,14 +40,14 @@ def build_parser() -> argparse.ArgumentParser:
     p = OneLineParser(prog="generate-dataset", description=__doc__.split("\n")[0])
     p.add_argument("--scenes", type=int, required=True, help="number of scenes (indices 0..N-1)")
     p.add_argument("--out", required=True, help="dataset folder (created; resumed if it exists)")
-    p.add_argument("--families", type=lambda s: tuple(f for f in s.split(",") if f),
+    p.add_argument("--families", type=name_list,
                    default=DEFAULT_FAMILIES, help=f"comma-separated subset of: {', '.join(FAMILIES)}")
-    p.add_argument("--spp", type=_int_list, default=(4, 16, 64, 128), help="noisy sample counts")
+    p.add_argument("--spp", type=int_list, default=(4, 16, 64, 128), help="noisy sample counts")
     p.add_argument("--ref-spp", type=int, default=4096, help="reference samples (two halves)")
     p.add_argument("--res", type=_resolution, default=(128, 128), help="N or WxH pixels")
     p.add_argument("--seed", type=int, default=0, help="dataset seed (scene i depends on seed, i)")
     p.add_argument("--val-fraction", type=float, default=0.1, help="share of scenes in split 'val'")
-    p.add_argument("--aovs", type=lambda s: tuple(a for a in s.split(",") if a), default=(),
+    p.add_argument("--aovs", type=name_list, default=(),
                    help="also write noisy albedo/normal buffers: alb,nrm")
     p.add_argument("--variance", action="store_true",
                    help="render each noisy image (>= 2 spp) in two halves and write its variance estimate")
@@ -73,41 +62,33 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
     from pathlib import Path
 
     from scenes.registry import FAMILIES
 
     unknown = [f for f in args.families if f not in FAMILIES]
     if unknown:
-        print(f"generate-dataset: unknown family {unknown[0]!r} (known: {', '.join(FAMILIES)})",
-              file=sys.stderr)
-        return 2
+        parser.error(f"unknown family {unknown[0]!r} (known: {', '.join(FAMILIES)})")
     if args.scheduler is not None and args.workers != 1:
-        print("generate-dataset: --workers and --scheduler exclude each other (the cluster's workers "
-              "do the work)", file=sys.stderr)
-        return 2
+        parser.error("--workers and --scheduler exclude each other (the cluster's workers do the work)")
     cfg = DatasetConfig(res=args.res, spp=args.spp, ref_spp=args.ref_spp, families=args.families,
                         seed=args.seed, aovs=args.aovs, val_fraction=args.val_fraction,
                         variance=args.variance)
     out = Path(args.out)
-
-    def bar(total: int) -> tqdm:
-        return tqdm(total=total, unit="scene", disable=args.quiet, dynamic_ncols=True)
-
     try:
-        summary = generate_dataset(out, cfg, args.scenes, args.workers, bar, args.scheduler)
+        summary = generate_dataset(out, cfg, args.scenes, args.workers, tqdm_bars("scene", not args.quiet),
+                                   args.scheduler)
         if args.preview:
             from dataset_gen.manifest import read_records
             from dataset_gen.preview import contact_sheet
 
             print(f"preview: {contact_sheet(out, read_records(out))}")
     except (DenoiserError, ValueError, OSError) as exc:
-        print(f"generate-dataset: {exc}", file=sys.stderr)
-        return 1
+        return parser.fail(exc)
     except KeyboardInterrupt:
-        print("generate-dataset: interrupted; re-run the same command to resume", file=sys.stderr)
-        return 130
+        return parser.interrupted("; re-run the same command to resume")
     rate = 3600 * summary.done / summary.wall_s if summary.wall_s else 0.0
     print(f"{out}: {summary.done} scenes rendered, {summary.skipped} already there, "
           f"{len(summary.failed)} failed; {summary.wall_s:.1f} s wall ({rate:.0f} scenes/h), "

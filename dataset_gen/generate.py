@@ -12,11 +12,10 @@ import concurrent.futures as cf
 import multiprocessing
 import os
 import time
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from importlib import metadata
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any
 
 from dataset_gen.cluster import SchedulerSpec, render_on_cluster
 from dataset_gen.config import DatasetConfig, open_dataset
@@ -24,14 +23,8 @@ from dataset_gen.jobs import IMAGES_DIR, SCENES_DIR, run_job
 from dataset_gen.manifest import append_record, read_records, repair
 from imaging.atomic_io import TMP_PREFIX
 from imaging.backend import LLVM_VARIANT, resolve_variant
+from imaging.progress import ProgressFactory
 from imaging.errors import DatasetError
-
-
-class Progress(Protocol):
-    def update(self, n: int = 1) -> Any: ...
-    def set_postfix_str(self, s: str) -> Any: ...
-    def write(self, s: str) -> Any: ...
-    def close(self) -> Any: ...
 
 
 @dataclass
@@ -88,7 +81,7 @@ def generate_dataset(
     cfg: DatasetConfig,
     scenes: int,
     workers: int = 1,
-    make_progress: Callable[[int], Progress] | None = None,
+    make_progress: ProgressFactory | None = None,
     scheduler: SchedulerSpec | None = None,
 ) -> GenerateSummary:
     """Render scenes ``0..scenes-1`` of ``cfg`` into ``folder`` (skipping finished ones), on

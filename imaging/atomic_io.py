@@ -8,10 +8,15 @@ no reader treats as finished. The finished file gets the permissions of a file c
 from __future__ import annotations
 
 import contextlib
+import json
+import math
 import os
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
+
+import numpy as np
 
 TMP_PREFIX = ".tmp-"
 CREATE_MODE = 0o666  # what open() asks for; the umask takes its bits away
@@ -69,3 +74,23 @@ def write_bytes_atomic(path: str | Path, data: bytes) -> None:
 def write_text_atomic(path: str | Path, text: str) -> None:
     """Write UTF-8 ``text`` to ``path`` atomically."""
     write_bytes_atomic(path, text.encode("utf-8"))
+
+
+def json_safe(value: Any) -> Any:
+    """``value`` ready for strict JSON: non-finite floats -> None (JSON has no inf or NaN: identical
+    images have PSNR null, meaning infinite), numpy scalars -> Python numbers, tuples -> lists,
+    containers converted recursively."""
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(v) for v in value]
+    return value
+
+
+def write_json_atomic(path: str | Path, value: Any, indent: int | None = 1) -> None:
+    """Write :func:`json_safe` ``value`` to ``path`` atomically as strict JSON plus a newline."""
+    write_text_atomic(path, json.dumps(json_safe(value), indent=indent, allow_nan=False) + "\n")

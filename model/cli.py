@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from imaging.errors import ConfigError, DenoiserError
+from imaging.progress import tqdm_bars
 from imaging.usage import OneLineParser
 from model.config import ARCHS, PRESETS, ModelConfig, preset
 from model.distributed import RankInfo, ddp_config, launch, rank_from_env, train_distributed
@@ -192,28 +193,17 @@ def main(argv: list[str] | None = None) -> int:
             launch(args.nproc, sys.argv[1:] if argv is None else argv, Path(args.out), threads=config.threads,
                    resume_hint=hint, log=lambda line: print(f"train: {line}", flush=True))
             return 0
-        from tqdm import tqdm
-
-        def progress(total: int, initial: int) -> tqdm:
-            return tqdm(total=total, initial=initial, unit="step", dynamic_ncols=True,
-                        disable=not config.progress, file=sys.stderr)
-
+        progress = tqdm_bars("step", enabled=config.progress)
         if rank is not None and rank.world > 1:
             result = train_distributed(config, rank, resume=resume, progress=progress, resume_hint=hint)
         else:
             result = train(config, resume=resume, progress=progress)
-    except DenoiserError as exc:
+    except (DenoiserError, OSError) as exc:
         tag = f"rank {rank.rank}: " if rank is not None and rank.world > 1 and "rank " not in str(exc) else ""
-        print(f"train: error: {tag}{exc}", file=sys.stderr)
-        return 1
-    except OSError as exc:
-        print(f"train: error: {exc.strerror or exc}: {exc.filename or ''}".rstrip(": "), file=sys.stderr)
-        return 1
+        return parser.fail(exc, tag)
     except KeyboardInterrupt:
         last = Path(args.out) / "last.ckpt"
-        resume_with = f"; resume with: {_resume_hint(parser, args, rank)}" if last.exists() else ""
-        print(f"train: interrupted{resume_with}", file=sys.stderr)
-        return 130
+        return parser.interrupted(f"; resume with: {_resume_hint(parser, args, rank)}" if last.exists() else "")
     if rank is not None and not rank.primary:
         return 0
     best = f"{result.best_psnr:.2f} dB" if result.best_psnr is not None else "n/a"

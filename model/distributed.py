@@ -53,10 +53,11 @@ import torch.distributed as dist
 from torch import nn
 
 from imaging.errors import CheckpointError, ConfigError, TrainingError
+from imaging.progress import ProgressFactory
 from model.checkpoint import Checkpoint, read_checkpoint
 from model.patches import TrainingPair
 from model.run_log import RunLog
-from model.train import BatchSource, ProgressFactory, TrainResult, _Run, run_training
+from model.train import BatchSource, TrainResult, _Run, run_training
 from model.train_config import TrainConfig
 
 BACKEND = "gloo"

@@ -12,17 +12,7 @@ import math
 from pathlib import Path
 from typing import Any
 
-from imaging.atomic_io import atomic_path, write_text_atomic
-
-
-def _finite(value: Any) -> Any:
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if isinstance(value, dict):
-        return {k: _finite(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_finite(v) for v in value]
-    return value
+from imaging.atomic_io import atomic_path, json_safe, write_text_atomic
 
 
 class RunLog:
@@ -35,7 +25,7 @@ class RunLog:
         """Append one record as a JSON line and flush it."""
         try:
             with open(self.path, "a", encoding="utf-8") as fh:
-                fh.write(json.dumps(_finite(record), allow_nan=False) + "\n")
+                fh.write(json.dumps(json_safe(record), allow_nan=False) + "\n")
         except OSError as exc:  # e.g. a full disk: name the log (a torn line is skipped by read())
             raise OSError(exc.errno, exc.strerror or str(exc), str(self.path)) from None
 

@@ -16,7 +16,7 @@ from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 import torch
@@ -24,6 +24,7 @@ import torch
 from imaging.atomic_io import TMP_PREFIX, write_text_atomic
 from imaging.errors import ConfigError, DatasetError, DenoiserError, TrainingError
 from imaging.hashing import file_sha256
+from imaging.progress import ProgressBar, ProgressFactory
 from model.architectures import build_model
 from model.checkpoint import (Checkpoint, model_from_checkpoint, read_checkpoint, restore_optimizer,
                               restore_rng, save_checkpoint)
@@ -39,17 +40,6 @@ from model.validate import Validator
 
 # dataset.json fields a resumed run must see unchanged
 _DATA_KEYS = ("spp", "ref_spp", "filter", "aovs", "variance")
-
-
-class ProgressBar(Protocol):
-    """The part of ``tqdm`` the loop uses."""
-
-    def update(self, n: int = 1) -> Any: ...
-    def set_postfix(self, ordered_dict: dict[str, Any] | None = None, refresh: bool = True) -> Any: ...
-    def close(self) -> Any: ...
-
-
-ProgressFactory = Callable[[int, int], ProgressBar]  # (total steps, initial step) -> bar
 
 
 @dataclass
@@ -305,7 +295,7 @@ def _one_step(run: _Run, net: torch.nn.Module, source: BatchSource, bar: Progres
     run.meter.paused_cpu += time.process_time() - paused_cpu
     if bar is not None:
         bar.update(1)
-        bar.set_postfix({"loss": f"{result.loss:.4g}", "lr": f"{lr:.3g}"}, refresh=False)
+        bar.set_postfix_str(f"loss={result.loss:.4g}, lr={lr:.3g}", refresh=False)
 
 
 def _compiled(run: _Run) -> torch.nn.Module:

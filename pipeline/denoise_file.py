@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from imaging.atomic_io import json_safe
 from imaging.bitmap_io import image_format, output_format, read_bitmap, write_bitmap
 from imaging.errors import DenoiserError, ExrError
 from imaging.exr import write_exr
@@ -163,14 +164,5 @@ def denoise_file(cfg: DenoiseFileConfig) -> dict[str, Any]:
             "mean_weight": result.guard_weight}}
     if ref is not None:
         out["quality"] = {"noisy": all_metrics(image.rgb, ref), "denoised": all_metrics(result.image, ref)}
-    return _json_safe(out)
+    return json_safe(out)
 
-
-def _json_safe(value: Any) -> Any:
-    if isinstance(value, float) and not np.isfinite(value):
-        return None
-    if isinstance(value, dict):
-        return {k: _json_safe(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_json_safe(v) for v in value]
-    return value

@@ -1,13 +1,16 @@
 """Atomic writes: a failure leaves the old file and no partial file under the final name."""
 from __future__ import annotations
 
+import json
 import os
 import stat
 from pathlib import Path
 
+import numpy as np
 import pytest
 
-from imaging.atomic_io import TMP_PREFIX, atomic_path, current_umask, write_text_atomic
+from imaging.atomic_io import (TMP_PREFIX, atomic_path, current_umask, json_safe, write_json_atomic,
+                               write_text_atomic)
 
 
 def test_write_replaces_whole_file(tmp_path: Path) -> None:
@@ -42,3 +45,12 @@ def test_finished_file_mode_follows_the_umask(tmp_path: Path, umask: int, mode: 
         os.umask(old)
     for name in ("a.json", "b.bin"):
         assert stat.S_IMODE((tmp_path / name).stat().st_mode) == mode, name
+
+
+def test_json_is_strict_and_safe(tmp_path: Path) -> None:
+    """inf/NaN (PSNR of identical images) become null, numpy scalars plain numbers, tuples lists."""
+    value = {"psnr": float("inf"), "x": [np.float32(0.5), (np.int64(3), float("nan"))], "ok": 1.5}
+    assert json_safe(value) == {"psnr": None, "x": [0.5, [3, None]], "ok": 1.5}
+    write_json_atomic(tmp_path / "m.json", value)
+    assert json.loads((tmp_path / "m.json").read_text()) == json_safe(value)
+    assert (tmp_path / "m.json").read_text().endswith("}\n")

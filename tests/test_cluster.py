@@ -173,8 +173,9 @@ def test_cli_scheduler_errors(tmp_path: Path, capsys, monkeypatch) -> None:
     with pytest.raises(SystemExit) as exc:
         cli_main([*args, "--scheduler", "local:0"])
     assert exc.value.code == 2 and "local:N with N >= 1" in capsys.readouterr().err
-    assert cli_main([*args, "--scheduler", "local:2", "--workers", "2"]) == 2
-    assert "exclude each other" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exc:
+        cli_main([*args, "--scheduler", "local:2", "--workers", "2"])
+    assert exc.value.code == 2 and "exclude each other" in capsys.readouterr().err
     monkeypatch.setattr(cluster, "CONNECT_TIMEOUT_S", 1)
     assert cli_main([*args, "--scheduler", "tcp://127.0.0.1:9"]) == 1
     err = capsys.readouterr().err.strip()
@@ -297,7 +298,7 @@ def test_worker_with_other_code_is_refused_at_submission(other_code_worker: clus
     assert cli_main(["--scenes", "2", "--out", str(out), *CFG_ARGS, "--scheduler", other_code_worker.address]) == 1
     err = capsys.readouterr().err.strip()
     mine = code_version()
-    assert "\n" not in err and err.startswith("generate-dataset: worker tcp://"), err
+    assert "\n" not in err and err.startswith("generate-dataset: error: worker tcp://"), err
     assert f"the client runs {mine}" in err and "runs mc-densenet-denoiser 0.1.0 (source " in err
     assert str(mine.source) not in err.split("the client runs")[0]  # the worker's source hash differs
     assert not (out / "images").exists() or not list((out / "images").iterdir())  # nothing was rendered

@@ -142,9 +142,11 @@ def test_kill_9_mid_run_then_resume_matches_clean_run(tmp_path: Path) -> None:
 
 
 def test_cli_errors_are_one_line(tmp_path: Path, capsys) -> None:
-    assert cli_main(["--scenes", "1", "--out", str(tmp_path / "x"), "--families", "nope"]) == 2
+    with pytest.raises(SystemExit) as exc:  # a usage error, as every command's
+        cli_main(["--scenes", "1", "--out", str(tmp_path / "x"), "--families", "nope"])
     err = capsys.readouterr().err.strip()
-    assert "\n" not in err and "unknown family 'nope'" in err
+    assert exc.value.code == 2 and "\n" not in err
+    assert err.startswith("generate-dataset: error: unknown family 'nope'")
     blocker = tmp_path / "file"
     blocker.write_text("")
     assert cli_main(["--scenes", "1", "--out", str(blocker), *TINY_ARGS]) == 1

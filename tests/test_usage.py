@@ -1,11 +1,15 @@
-"""Every command's usage errors: one line on stderr naming the problem, no usage text, exit code 2."""
+"""Every command's usage errors: one line on stderr naming the problem, no usage text, exit code 2;
+other errors one line too (exit code 1); the argument types the commands share."""
 from __future__ import annotations
 
+import argparse
 from collections.abc import Callable
 
 import pytest
 
 from dataset_gen.cli import main as generate_main
+from imaging.errors import DenoiserError
+from imaging.usage import OneLineParser, int_list, name_list, name_value, positive_float, positive_int
 from model.cli import main as train_main
 from pipeline.cli import denoise_main, main as render_main, tradeoff_main
 
@@ -44,3 +48,30 @@ def test_usage_error_is_one_line_exit_2(command: str, argv: list[str], needle: s
 
 def test_every_command_is_covered() -> None:
     assert {c for c, _, _ in CASES} == set(COMMANDS)
+
+
+def test_runtime_errors_are_one_line_like_usage_errors(capsys: pytest.CaptureFixture) -> None:
+    parser = OneLineParser(prog="cmd")
+    assert parser.fail(DenoiserError("scene.xml: bad\nsecond line")) == 1
+    assert parser.fail(OSError(28, "No space left on device", "/out/x.exr"), "rank 1: ") == 1
+    assert parser.fail(ValueError()) == 1
+    assert parser.interrupted("; re-run it") == 130
+    assert capsys.readouterr().err.splitlines() == [
+        "cmd: error: scene.xml: bad", "cmd: error: rank 1: No space left on device: /out/x.exr",
+        "cmd: error: ValueError", "cmd: interrupted; re-run it"]
+
+
+@pytest.mark.parametrize("kind, text, value", [
+    (int_list, "4,16,,128", (4, 16, 128)), (name_list, "a,,b", ("a", "b")), (name_value, "x=1=2", ("x", "1=2")),
+    (positive_int, "3", 3), (positive_float, "0.5", 0.5)])
+def test_argument_types(kind: Callable[[str], object], text: str, value: object) -> None:
+    assert kind(text) == value
+
+
+@pytest.mark.parametrize("kind, text", [
+    (int_list, "4,x"), (int_list, "4,0"), (int_list, ","), (name_value, "=1"), (name_value, "x"),
+    (positive_int, "0"), (positive_int, "1.5"), (positive_float, "inf"), (positive_float, "nan"),
+    (positive_float, "-1")])
+def test_bad_arguments_are_refused(kind: Callable[[str], object], text: str) -> None:
+    with pytest.raises(argparse.ArgumentTypeError, match=repr(text)):
+        kind(text)
