@@ -19,7 +19,7 @@ demo: bootstrap
 	  --reference scenes/examples/demo_reference.exr --out demo-output
 
 evaluate: bootstrap
-	$(PY) benchmarks/evaluate.py
+	$(PY) -m benchmarks.evaluate
 
 bootstrap: llvm chromium $(STAMP)
 

@@ -4,9 +4,15 @@ argument types the commands have in common."""
 from __future__ import annotations
 
 import argparse
+import math
 import sys
-from typing import NoReturn
+from collections.abc import Callable
+from typing import Any, NoReturn, TypeVar
 
+from imaging.errors import DenoiserError
+
+T = TypeVar("T")
+COMMAND_ERRORS = (DenoiserError, OSError, ValueError)  # what a command reports as one line (exit 1)
 USAGE_EXIT = 2
 ERROR_EXIT = 1
 INTERRUPTED_EXIT = 130
@@ -40,27 +46,36 @@ class OneLineParser(argparse.ArgumentParser):
         print(f"{self.prog}: interrupted{note}", file=sys.stderr)
         return INTERRUPTED_EXIT
 
+    def attempt(self, action: Callable[[], T], errors: tuple[type[BaseException], ...] = COMMAND_ERRORS
+                ) -> tuple[T | None, int]:
+        """Run a command's library call: ``(result, 0)``; on one of ``errors`` ``(None, 1)`` after
+        :meth:`fail`, on Ctrl-C ``(None, 130)`` after :meth:`interrupted`."""
+        try:
+            return action(), 0
+        except errors as exc:
+            return None, self.fail(exc)
+        except KeyboardInterrupt:
+            return None, self.interrupted()
+
+
+def _positive(text: str, convert: Callable[[str], Any], what: str) -> Any:
+    try:
+        value = convert(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive {what}, got {text!r}") from None
+    if not (value > 0 and math.isfinite(value)):
+        raise argparse.ArgumentTypeError(f"expected a positive {what}, got {text!r}")
+    return value
+
 
 def positive_int(text: str) -> int:
     """Argument type: an integer >= 1."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
-    return value
+    return _positive(text, int, "integer")
 
 
 def positive_float(text: str) -> float:
     """Argument type: a finite number > 0."""
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}") from None
-    if not value > 0 or value == float("inf"):
-        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}")
-    return value
+    return _positive(text, float, "number")
 
 
 def int_list(text: str) -> tuple[int, ...]:

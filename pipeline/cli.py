@@ -1,4 +1,4 @@
-"""Command-line entry points ``render-and-denoise`` and ``denoise``: parse, run, map errors."""
+"""Command-line entry points ``render-and-denoise``, ``denoise`` and ``tradeoff``: parse, run, map errors."""
 from __future__ import annotations
 
 import argparse
@@ -6,71 +6,54 @@ import json
 import sys
 from pathlib import Path
 
-from imaging.errors import DenoiserError
-from imaging.usage import OneLineParser
+from imaging.progress import tqdm_bars
+from imaging.render import DEFAULT_MAX_MEMORY_MB
+from imaging.usage import OneLineParser, int_list, name_list, name_value, positive_float, positive_int
+from pipeline.evaluation import RenderSettings
 
 
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
-    return value
+def add_render_arguments(p: argparse.ArgumentParser, reference_required: bool, guard_help: str) -> None:
+    """The flags of :class:`RenderSettings` (``render-and-denoise`` and ``tradeoff``)."""
+    p.add_argument("scene", help="Mitsuba 3 scene XML file")
+    p.add_argument("--res", type=positive_int, nargs=2, metavar=("W", "H"), help="resolution")
+    p.add_argument("--seed", type=int, default=0, help="render seed")
+    p.add_argument("--param", type=name_value, action="append", default=[], metavar="NAME=VALUE",
+                   help="scene $parameter")
+    ref = p.add_mutually_exclusive_group(required=reference_required)
+    ref.add_argument("--reference", help="reference EXR of the same size")
+    ref.add_argument("--reference-spp", type=positive_int, help="render a reference at N spp")
+    p.add_argument("--max-memory-mb", type=float, default=DEFAULT_MAX_MEMORY_MB,
+                   help="memory bound of the render's films and of one denoiser tile")
+    p.add_argument("--no-noise-guard", action="store_true", help=guard_help)
 
 
-def _positive_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}") from None
-    if not value > 0 or value == float("inf"):
-        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}")
-    return value
+def render_settings(args: argparse.Namespace) -> RenderSettings:
+    """The :class:`RenderSettings` of parsed :func:`add_render_arguments` flags."""
+    return RenderSettings(scene=args.scene, resolution=tuple(args.res) if args.res else None, seed=args.seed,
+                          params=dict(args.param), max_memory_mb=args.max_memory_mb,
+                          noise_guard=not args.no_noise_guard, reference=args.reference,
+                          reference_spp=args.reference_spp)
 
 
-def _param(text: str) -> tuple[str, str]:
-    name, sep, value = text.partition("=")
-    if not sep or not name:
-        raise argparse.ArgumentTypeError(f"expected name=value, got {text!r}")
-    return name, value
-
-
-def _fail(prog: str, exc: BaseException) -> int:
-    message = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-    print(f"{prog}: {message}", file=sys.stderr)
-    return 1
-
-
-def render_parser() -> argparse.ArgumentParser:
+def render_parser() -> OneLineParser:
     p = OneLineParser(prog="render-and-denoise",
                       description="Render a Mitsuba scene, denoise it, report metrics.")
-    p.add_argument("scene", help="Mitsuba 3 scene XML file")
-    p.add_argument("--spp", type=_positive_int, help="samples per pixel (128)")
-    p.add_argument("--res", type=_positive_int, nargs=2, metavar=("W", "H"), help="resolution")
-    p.add_argument("--seed", type=int, default=0, help="render seed")
+    add_render_arguments(p, reference_required=False, guard_help=(
+        "render in one piece and keep the denoiser's output as it is (default: render in two halves "
+        "and keep the render where its noise does not explain the change)"))
+    p.add_argument("--spp", type=positive_int, help="samples per pixel (128)")
     p.add_argument("--model", help="checkpoint or preset name (default: the shipped weights); "
                    "'auto' with --time-budget")
-    ref = p.add_mutually_exclusive_group()
-    ref.add_argument("--reference", help="reference EXR of the same size")
-    ref.add_argument("--reference-spp", type=_positive_int, help="render a reference at N spp")
     compare = p.add_mutually_exclusive_group()
     compare.add_argument("--compare", choices=["oidn"], action="append", default=[],
                          help="denoise with OIDN colour-only too, and fail without pyoidn (default: "
                          "compare whenever pyoidn is installed)")
     compare.add_argument("--no-compare", action="store_true", help="do not run OIDN")
-    p.add_argument("--param", type=_param, action="append", default=[], metavar="NAME=VALUE",
-                   help="scene $parameter")
     p.add_argument("--out", help="output folder (default: the scene's name)")
-    p.add_argument("--max-memory-mb", type=float, default=1024.0, help="tile memory bound")
-    p.add_argument("--time-budget", type=_positive_float, metavar="SECONDS",
+    p.add_argument("--time-budget", type=positive_float, metavar="SECONDS",
                    help="choose spp (and, with --model auto, the preset) to finish within SECONDS")
     p.add_argument("--curves", metavar="TRADEOFF_JSON",
                    help="trade curves (a tradeoff run's tradeoff.json) for --model auto")
-    p.add_argument("--no-noise-guard", action="store_true",
-                   help="render in one piece and keep the denoiser's output as it is (default: render "
-                   "in two halves and keep the render where its noise does not explain the change)")
     p.add_argument("--quiet", action="store_true", help="no summary on stdout")
     return p
 
@@ -85,28 +68,21 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--spp and --time-budget exclude each other (the budget chooses the spp)")
     from pipeline.run import RunConfig, run, summary_lines
 
-    cfg = RunConfig(scene=args.scene, out=args.out or Path(args.scene).stem, spp=args.spp or 128,
-                    resolution=tuple(args.res) if args.res else None, seed=args.seed,
-                    model=args.model, reference=args.reference, reference_spp=args.reference_spp,
+    cfg = RunConfig(render=render_settings(args), out=args.out or Path(args.scene).stem, spp=args.spp or 128,
+                    model=args.model,
                     compare_oidn=False if args.no_compare else ("oidn" in args.compare or None),
-                    params=dict(args.param),
-                    max_memory_mb=args.max_memory_mb, time_budget=args.time_budget, curves=args.curves,
-                    noise_guard=not args.no_noise_guard)
+                    time_budget=args.time_budget, curves=args.curves)
     log = (lambda s: None) if args.quiet else (lambda s: print(f"... {s}", file=sys.stderr))
-    try:
-        metrics = run(cfg, log)
-    except (DenoiserError, OSError, ValueError) as exc:
-        return _fail("render-and-denoise", exc)
-    except KeyboardInterrupt:
-        print("render-and-denoise: interrupted", file=sys.stderr)
-        return 130
+    metrics, code = parser.attempt(lambda: run(cfg, log))
+    if code:
+        return code
     if not args.quiet:
         print("\n".join(summary_lines(metrics)))
         print(f"outputs: {cfg.out}/ (report.html, metrics.json, comparison.png)")
     return 0
 
 
-def denoise_parser() -> argparse.ArgumentParser:
+def denoise_parser() -> OneLineParser:
     p = OneLineParser(prog="denoise", description="Denoise an image rendered elsewhere (EXR with any "
                       "layers or parts, PFM, Radiance HDR); the output keeps the input's layout.")
     p.add_argument("files", nargs="+", metavar="IN OUT",
@@ -121,13 +97,13 @@ def denoise_parser() -> argparse.ArgumentParser:
                    help="layer holding the variance of the colour's estimate (default: 'variance')")
     p.add_argument("--rgb-only", action="store_true",
                    help="write a plain RGB EXR instead of the input's layers and parts")
-    p.add_argument("--spp", type=_positive_int,
+    p.add_argument("--spp", type=positive_int,
                    help="samples per pixel of the input, for the noise guard (default: the file's spp)")
     p.add_argument("--no-noise-guard", action="store_true",
                    help="ignore the variance: keep the denoiser's output as it is")
     p.add_argument("--model", help="checkpoint or preset name (default: the shipped weights)")
     p.add_argument("--reference", help="reference image: print metrics")
-    p.add_argument("--max-memory-mb", type=float, default=1024.0, help="tile memory bound")
+    p.add_argument("--max-memory-mb", type=float, default=DEFAULT_MAX_MEMORY_MB, help="tile memory bound")
     return p
 
 
@@ -147,43 +123,29 @@ def denoise_main(argv: list[str] | None = None) -> int:
                             model=args.model, reference=args.reference, layer=args.layer,
                             variance_layer=args.variance_layer, rgb_only=args.rgb_only, spp=args.spp,
                             noise_guard=not args.no_noise_guard, max_memory_mb=args.max_memory_mb)
-    try:
-        result = denoise_file(cfg)
-    except (DenoiserError, OSError, ValueError) as exc:
-        return _fail("denoise", exc)
+    result, code = parser.attempt(lambda: denoise_file(cfg))
+    if code:
+        return code
     print(json.dumps(result, indent=1))
     return 0
 
 
-def _int_list(text: str) -> list[int]:
-    return [_positive_int(part) for part in text.split(",") if part.strip()]
-
-
-def tradeoff_parser() -> argparse.ArgumentParser:
+def tradeoff_parser() -> OneLineParser:
     p = OneLineParser(prog="tradeoff", description="Measure error against time for each "
                                 "spp and denoiser; plot, Pareto frontier, equal-quality savings.")
-    p.add_argument("scene", help="Mitsuba 3 scene XML file")
-    p.add_argument("--spp", type=_int_list, default=[1, 2, 4, 8, 16, 32, 64, 128, 256, 512, 1024],
+    add_render_arguments(p, reference_required=True, guard_help=(
+        "as render-and-denoise --no-noise-guard: one-piece renders, unguarded models"))
+    p.add_argument("--spp", type=int_list, default=(1, 2, 4, 8, 16, 32, 64, 128, 256, 512, 1024),
                    help="comma-separated spp levels (1,2,4,...,1024)")
-    p.add_argument("--models", type=lambda t: [m for m in t.split(",") if m], default=None,
+    p.add_argument("--models", type=name_list, default=None,
                    help="comma-separated presets (model/weights/<name>.ckpt) or checkpoint paths "
                         "(fast,balanced,high)")
     p.add_argument("--compare", choices=["oidn"], action="append", default=[],
                    help="also measure OIDN colour-only (needs pyoidn)")
-    ref = p.add_mutually_exclusive_group(required=True)
-    ref.add_argument("--reference", help="reference EXR of the same size")
-    ref.add_argument("--reference-spp", type=_positive_int, help="render a reference at N spp")
-    p.add_argument("--repeat", type=_positive_int, default=3, help="timing repeats, median kept (3)")
+    p.add_argument("--repeat", type=positive_int, default=3, help="timing repeats, median kept (3)")
     p.add_argument("--metric", choices=["relmse", "psnr", "flip"], default="relmse",
                    help="error of the plot, frontier and saving table (relmse)")
-    p.add_argument("--res", type=_positive_int, nargs=2, metavar=("W", "H"), help="resolution")
-    p.add_argument("--seed", type=int, default=0, help="render seed")
-    p.add_argument("--param", type=_param, action="append", default=[], metavar="NAME=VALUE",
-                   help="scene $parameter")
     p.add_argument("--out", help="output folder (default: <scene name>-tradeoff)")
-    p.add_argument("--max-memory-mb", type=float, default=1024.0, help="tile memory bound")
-    p.add_argument("--no-noise-guard", action="store_true",
-                   help="as render-and-denoise --no-noise-guard: one-piece renders, unguarded models")
     p.add_argument("--quiet", action="store_true", help="no progress bar and no table")
     return p
 
@@ -191,31 +153,18 @@ def tradeoff_parser() -> argparse.ArgumentParser:
 def tradeoff_main(argv: list[str] | None = None) -> int:
     """``tradeoff scene.xml [--spp ...] [--models ...] [--compare oidn] (--reference F |
     --reference-spp N)``."""
-    args = tradeoff_parser().parse_args(argv)
-    from tqdm import tqdm
-
+    parser = tradeoff_parser()
+    args = parser.parse_args(argv)
     from pipeline.tradeoff import DEFAULT_MODELS, TradeoffConfig, run_tradeoff
     from pipeline.tradeoff_report import saving_table
 
-    cfg = TradeoffConfig(scene=args.scene, out=args.out or f"{Path(args.scene).stem}-tradeoff",
-                         spp=args.spp,
-                         models=args.models if args.models is not None else list(DEFAULT_MODELS),
-                         compare_oidn="oidn" in args.compare, reference=args.reference,
-                         reference_spp=args.reference_spp, repeat=args.repeat,
-                         resolution=tuple(args.res) if args.res else None, seed=args.seed,
-                         params=dict(args.param), metric=args.metric, max_memory_mb=args.max_memory_mb,
-                         noise_guard=not args.no_noise_guard)
-
-    def bar(total: int) -> tqdm:
-        return tqdm(total=total, unit="step", disable=args.quiet, dynamic_ncols=True)
-
-    try:
-        result = run_tradeoff(cfg, bar)
-    except (DenoiserError, OSError, ValueError) as exc:
-        return _fail("tradeoff", exc)
-    except KeyboardInterrupt:
-        print("tradeoff: interrupted", file=sys.stderr)
-        return 130
+    models = args.models if args.models is not None else DEFAULT_MODELS
+    cfg = TradeoffConfig(render=render_settings(args), out=args.out or f"{Path(args.scene).stem}-tradeoff",
+                         spp=list(args.spp), models=list(models), compare_oidn="oidn" in args.compare,
+                         repeat=args.repeat, metric=args.metric)
+    result, code = parser.attempt(lambda: run_tradeoff(cfg, tqdm_bars("step", enabled=not args.quiet)))
+    if code:
+        return code
     if not args.quiet:
         print("\n".join(saving_table(result)))
         print(f"outputs: {cfg.out}/ (tradeoff.json, tradeoff.csv, tradeoff.png)")

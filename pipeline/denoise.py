@@ -60,6 +60,7 @@ class DenoiseResult:
     tiles: int
     guard_weight: float | None = None  # noise guard's mean weight of the denoiser (None: no guard)
     guard_map: np.ndarray | None = None  # HxW float32 in [0, 1]: that weight per pixel
+    network: np.ndarray | None = None  # the network's output before the guard (``keep_network``)
 
 
 def count_invalid(rgb: np.ndarray) -> tuple[int, int]:
@@ -129,12 +130,13 @@ class Denoiser:
 
     def denoise_array(self, rgb: np.ndarray, albedo: np.ndarray | None = None,
                       normals: np.ndarray | None = None, variance: np.ndarray | None = None,
-                      strength: float = DEFAULT_STRENGTH) -> DenoiseResult:
+                      strength: float = DEFAULT_STRENGTH, keep_network: bool = False) -> DenoiseResult:
         """Denoise HxWx3 linear radiance (any float dtype) with :func:`model.infer.denoise_image`.
 
         ``variance``: HxWx3 variance of ``rgb``'s Monte Carlo estimate (a render made of two
         halves, :func:`imaging.render.render_loaded`); given, the output is blended with the
         render where the render's noise does not explain the change (:mod:`pipeline.noise_guard`).
+        ``keep_network``: also return the network's output before that blend (``network``).
         """
         from model.infer import denoise_image
 
@@ -158,6 +160,7 @@ class Denoiser:
                             progress=lambda n, total: count.__setitem__(0, total),
                             variance=variance, skip_below=self.skip_below)
         weight = weights = None
+        network = out if keep_network else None
         if variance is not None:
             with np.errstate(invalid="ignore"):
                 clean = np.clip(np.nan_to_num(np.asarray(rgb, np.float32), nan=0.0, posinf=0.0,
@@ -165,13 +168,14 @@ class Denoiser:
             weights = blend_weight(clean, out, np.asarray(variance, np.float32), strength=strength)
             out, weight = blend(clean, out, weights), float(weights.mean())
         return DenoiseResult(out, nonfinite, negative, time.perf_counter() - start, count[0], weight,
-                             None if weights is None else weights[:, :, 0])
+                             None if weights is None else weights[:, :, 0], network)
 
-    def denoise_render(self, render: RenderResult) -> DenoiseResult:
+    def denoise_render(self, render: RenderResult, keep_network: bool = False) -> DenoiseResult:
         """Denoise a render of :mod:`imaging.render` with what it carries: its AOVs and, for a
-        render made in two halves, its variance with the noise guard's strength for its spp."""
+        render made in two halves, its variance (the model's noise input, if it has one) and the
+        noise guard at the strength for its spp. ``keep_network`` as in :meth:`denoise_array`."""
         return self.denoise_array(render.rgb, render.aovs.get("albedo"), render.aovs.get("sh_normal"),
-                                  render.variance, strength_for(render.spp))
+                                  render.variance, strength_for(render.spp), keep_network)
 
     def __call__(self, noisy: Any, albedo: Any = None, normals: Any = None) -> Any:
         """Denoise a numpy array, torch tensor, ``mi.TensorXf`` or ``mi.Bitmap`` (HxWx3, or HxWx4

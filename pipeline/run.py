@@ -6,8 +6,6 @@ same folder deletes the old one first), report.html and config.json (the run's s
 """
 from __future__ import annotations
 
-import json
-import math
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
@@ -17,48 +15,35 @@ from typing import Any
 
 import numpy as np
 
-from imaging.atomic_io import TMP_PREFIX, write_text_atomic
+from imaging.atomic_io import TMP_PREFIX, json_safe, write_json_atomic
 from imaging.errors import DenoiserError
-from imaging.exr import read_exr, write_exr
-from imaging.metrics import all_metrics
+from imaging.exr import write_exr
 from imaging.peak_rss import PeakRSS
 from imaging.png import save_png
-from imaging.render import load_scene, pass_seeds, prepare, render_loaded
-from pipeline.budget import budget_candidates, plan_run
-from pipeline.denoise import Denoiser
+from imaging.render import RenderResult
+from pipeline.budget import BudgetPlan, budget_candidates, plan_run
+from pipeline.denoise import DenoiseResult, Denoiser
+from pipeline.evaluation import (RenderSettings, aovs_for, check_reference, denoise_output, read_reference,
+                                 render_input, render_reference, score)
 from pipeline.noise_guard import DEFAULT_PIVOT_SPP, DEFAULT_RADIUS, strength_for
-from pipeline.oidn import oidn_available, oidn_denoise
+from pipeline.oidn import oidn_available
 from pipeline.report import comparison_image, write_previews, write_report
 
 
 @dataclass
 class RunConfig:
-    """Settings of one render-and-denoise run (filled by the CLI, saved as config.json)."""
+    """Settings of one render-and-denoise run (filled by the CLI, saved as config.json).
+    ``compare_oidn``: OIDN beside ours (None: whenever pyoidn is installed); ``time_budget``
+    seconds: spp (and, with model "auto", the model) chosen to fit; ``curves``: a tradeoff.json
+    guiding the model choice under a time budget."""
 
-    scene: str
+    render: RenderSettings
     out: str
     spp: int = 128
-    resolution: tuple[int, int] | None = None
-    seed: int = 0
     model: str | None = None
-    reference: str | None = None
-    reference_spp: int | None = None
-    compare_oidn: bool | None = None  # OIDN beside ours; None: whenever pyoidn is installed
-    params: dict[str, str] = field(default_factory=dict)
-    max_memory_mb: float = 1024.0
-    time_budget: float | None = None  # seconds: spp (and, with model "auto", the model) chosen to fit
-    curves: str | None = None  # tradeoff.json guiding the model choice under a time budget
-    noise_guard: bool = True  # render in two halves, blend by pipeline.noise_guard (off: one render)
-
-
-def _json_safe(value: Any) -> Any:
-    if isinstance(value, float) and not math.isfinite(value):
-        return None  # JSON has no inf: identical images have PSNR null (= infinite)
-    if isinstance(value, dict):
-        return {k: _json_safe(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_json_safe(v) for v in value]
-    return value
+    compare_oidn: bool | None = None
+    time_budget: float | None = None
+    curves: str | None = None
 
 
 def image_stats(img: np.ndarray) -> dict[str, float]:
@@ -97,89 +82,146 @@ def _oidn_setting(compare: bool | None) -> dict[str, Any]:
     return {"compared": True, "note": "OIDN: Intel Open Image Denoise, colour only (pyoidn)"}
 
 
-def run(cfg: RunConfig, log: Callable[[str], None] = lambda s: None) -> dict[str, Any]:
-    """Render, denoise, compare; write every output; return the metrics dict."""
-    if cfg.reference and cfg.reference_spp:
-        raise DenoiserError("give either --reference or --reference-spp, not both")
-    out = Path(cfg.out)
-    t_start = time.perf_counter()
-    candidates = budget_candidates(cfg.model, cfg.max_memory_mb) if cfg.time_budget is not None else {}
+@dataclass
+class _Run:
+    """What the stages of :func:`run` hand on: the settings, the models, the loaded scene and what
+    has been made so far (images by name, timings in seconds)."""
+
+    cfg: RunConfig
+    log: Callable[[str], None]
+    started: float
+    denoiser: Denoiser
+    candidates: dict[str, Denoiser]
+    reference: np.ndarray | None
+    aovs: tuple[str, ...] = ()
+    scene: Any = None
+    spp: int = 0
+    plan: BudgetPlan | None = None
+    noisy: RenderResult | None = None
+    result: DenoiseResult | None = None
+    render_memory: PeakRSS | None = None
+    images: dict[str, np.ndarray] = field(default_factory=dict)
+    timings: dict[str, float] = field(default_factory=dict)
+    oidn: dict[str, Any] = field(default_factory=dict)
+
+
+def _start(cfg: RunConfig, log: Callable[[str], None]) -> _Run:
+    """Check the settings, load the models, read the reference file and prepare the output folder
+    (everything that can fail before the render); write config.json."""
+    cfg.render.check()
+    started = time.perf_counter()
+    candidates = budget_candidates(cfg.model, cfg.render.max_memory_mb) if cfg.time_budget is not None else {}
     denoiser = (next(iter(candidates.values())) if candidates
-                else Denoiser(cfg.model, max_memory_mb=cfg.max_memory_mb))
-    reference = read_exr(cfg.reference).rgb if cfg.reference else None
-    _check_out(out)
-    write_text_atomic(out / "config.json", json.dumps(asdict(cfg), indent=1) + "\n")
+                else Denoiser(cfg.model, max_memory_mb=cfg.render.max_memory_mb))
+    reference = read_reference(cfg.render)
+    _check_out(Path(cfg.out))
+    write_json_atomic(Path(cfg.out) / "config.json", asdict(cfg))
+    aovs = aovs_for([denoiser, *candidates.values()])
+    return _Run(cfg, log, started, denoiser, candidates, reference, aovs, spp=cfg.spp)
 
-    aovs = ("albedo", "sh_normal") if any(d.needs_aovs for d in (denoiser, *candidates.values())) else ()
+
+def _load_scene(run: _Run) -> None:
     t0 = time.perf_counter()
-    scene = load_scene(prepare(cfg.scene, cfg.resolution, aovs, cfg.params))
-    t_load = time.perf_counter() - t0
-    spp, plan = cfg.spp, None
-    if candidates:
-        plan = plan_run(cfg.time_budget, t_start, scene, cfg.seed, aovs, candidates, cfg.curves, log,
-                        halves=cfg.noise_guard)
-        denoiser, spp = candidates[plan.model], plan.spp
-    log(f"rendering {spp} spp")
-    with PeakRSS() as render_memory:  # Mitsuba's render and its buffers, reported on their own
-        noisy = render_loaded(scene, spp, cfg.seed, aovs, halves=cfg.noise_guard,
-                              max_memory_mb=cfg.max_memory_mb)
-    if reference is not None and reference.shape != noisy.rgb.shape:
-        raise DenoiserError(f"{cfg.reference}: reference is {reference.shape[1]}x{reference.shape[0]}"
-                            f", render is {noisy.rgb.shape[1]}x{noisy.rgb.shape[0]}")
-    log(f"denoising with {denoiser.name}")
-    result = denoiser.denoise_render(noisy)
-    if plan:
-        plan.actual_s = time.perf_counter() - t_start
-    images = {"noisy": noisy.rgb, "denoised": result.image}
-    timings = {"scene_load_s": t_load, "render_s": noisy.seconds, "denoise_s": result.seconds}
-    oidn = _oidn_setting(cfg.compare_oidn)
-    if oidn["compared"]:
-        log("denoising with OIDN")
-        images["oidn"], timings["oidn_s"] = oidn_denoise(noisy.rgb)
-    if cfg.reference_spp:
-        log(f"rendering the reference at {cfg.reference_spp} spp")
-        plain = load_scene(prepare(cfg.scene, cfg.resolution, (), cfg.params)) if aovs else scene
-        ref = render_loaded(plain, cfg.reference_spp, pass_seeds(cfg.seed, 2)[1],
-                            max_memory_mb=cfg.max_memory_mb)
-        reference, timings["reference_render_s"] = ref.rgb, ref.seconds
-    if reference is not None:
-        images["reference"] = reference
+    run.scene = run.cfg.render.load(run.aovs)
+    run.timings["scene_load_s"] = time.perf_counter() - t0
 
-    meta = {"scene": Path(cfg.scene).stem, "spp": spp, "seed": cfg.seed}
-    for name, img in images.items():
+
+def _fit_budget(run: _Run) -> None:
+    """Budget mode: probe the scene and the candidate models, choose the model and the spp."""
+    if not run.candidates:
+        return
+    cfg = run.cfg
+    run.plan = plan_run(cfg.time_budget, run.started, run.scene, cfg.render.seed, run.aovs, run.candidates,
+                        cfg.curves, run.log, halves=cfg.render.noise_guard)
+    run.denoiser, run.spp = run.candidates[run.plan.model], run.plan.spp
+
+
+def _render_and_denoise(run: _Run) -> None:
+    """The evaluation path (:mod:`pipeline.evaluation`): the render a denoiser is given, then our
+    model as it applies to it; the budget's clock stops here."""
+    run.log(f"rendering {run.spp} spp")
+    with PeakRSS() as run.render_memory:  # Mitsuba's render and its buffers, reported on their own
+        run.noisy = render_input(run.scene, run.spp, run.cfg.render, run.aovs)
+    if run.reference is not None:
+        check_reference(run.cfg.render, run.reference, run.noisy)
+    run.log(f"denoising with {run.denoiser.name}")
+    denoised = denoise_output(run.noisy, run.denoiser)
+    if run.plan:
+        run.plan.actual_s = time.perf_counter() - run.started
+    run.result = denoised.result
+    run.images.update(noisy=run.noisy.rgb, denoised=denoised.image)
+    run.timings.update(render_s=run.noisy.seconds, denoise_s=denoised.seconds)
+
+
+def _compare(run: _Run) -> None:
+    """OIDN on the same render, and the reference (read, or rendered now)."""
+    run.oidn = _oidn_setting(run.cfg.compare_oidn)
+    if run.oidn["compared"]:
+        run.log("denoising with OIDN")
+        oidn = denoise_output(run.noisy, None)
+        run.images["oidn"], run.timings["oidn_s"] = oidn.image, oidn.seconds
+    if run.cfg.render.reference_spp:
+        run.log(f"rendering the reference at {run.cfg.render.reference_spp} spp")
+        ref = render_reference(run.cfg.render, run.scene, run.aovs)
+        run.reference, run.timings["reference_render_s"] = ref.rgb, ref.seconds
+    if run.reference is not None:
+        run.images["reference"] = run.reference
+
+
+def _write_images(run: _Run) -> None:
+    out = Path(run.cfg.out)
+    meta = {"scene": Path(run.cfg.render.scene).stem, "spp": run.spp, "seed": run.cfg.render.seed}
+    for name, img in run.images.items():
         write_exr(out / f"{name}.exr", img, metadata={**meta, "image": name})
-    write_previews(out, images)
-    focus_against = ("denoised", "reference") if reference is not None else ("denoised", "noisy")
-    save_png(out / "comparison.png", comparison_image(images, *focus_against))
+    write_previews(out, run.images)
+    focus_against = ("denoised", "reference") if run.reference is not None else ("denoised", "noisy")
+    save_png(out / "comparison.png", comparison_image(run.images, *focus_against))
 
-    timings["total_s"] = time.perf_counter() - t_start
+
+def _metrics(run: _Run) -> dict[str, Any]:
+    """metrics.json's dict: settings, model, timings, sanitised values, memory, guard, budget and
+    the quality of every image against the reference (or their statistics)."""
+    cfg, noisy, result, denoiser = run.cfg.render, run.noisy, run.result, run.denoiser
     h, w = noisy.rgb.shape[:2]
     metrics: dict[str, Any] = {
-        "scene": str(cfg.scene), "spp": spp, "resolution": [w, h], "seed": cfg.seed,
+        "scene": str(cfg.scene), "spp": run.spp, "resolution": [w, h], "seed": cfg.seed,
         "model": {"name": denoiser.name, "sha256": denoiser.sha256, "config": denoiser.config.to_dict()},
-        "mitsuba": metadata.version("mitsuba"), "variant": noisy.variant, "timings": timings,
+        "mitsuba": metadata.version("mitsuba"), "variant": noisy.variant, "timings": run.timings,
         "sanitized": {"render_nonfinite_pixels": noisy.nonfinite, "denoiser_nonfinite_values":
                       result.nonfinite, "denoiser_negative_values": result.negative},
-        "oidn": oidn,
+        "oidn": run.oidn,
         "reference": ({"file": str(cfg.reference)} if cfg.reference else
                       {"spp": cfg.reference_spp} if cfg.reference_spp else None),
-        "render_memory": {**render_memory.to_dict(), "budget_mb": cfg.max_memory_mb, "crops": noisy.crops},
+        "render_memory": {**run.render_memory.to_dict(), "budget_mb": cfg.max_memory_mb, "crops": noisy.crops},
     }
     metrics["noise_guard"] = ({"radius": DEFAULT_RADIUS, "pivot_spp": DEFAULT_PIVOT_SPP,
-                               "strength": strength_for(spp), "mean_weight": result.guard_weight}
+                               "strength": strength_for(run.spp), "mean_weight": result.guard_weight}
                               if result.guard_weight is not None else None)
-    if plan:
-        metrics["budget"] = plan.to_dict()
-    if reference is not None:
-        metrics["quality"] = {n: all_metrics(img, reference) for n, img in images.items()
+    if run.plan:
+        metrics["budget"] = run.plan.to_dict()
+    if run.reference is not None:
+        metrics["quality"] = {n: score(img, run.reference, full=True) for n, img in run.images.items()
                               if n != "reference"}
         metrics["note"] = "quality against the reference (PSNR/SSIM tonemapped x/(1+x), gamma 1/2.2)"
     else:
-        metrics["stats"] = {n: image_stats(img) for n, img in images.items()}
+        metrics["stats"] = {n: image_stats(img) for n, img in run.images.items()}
         metrics["note"] = "no reference given: timings and image statistics only"
-    metrics = _json_safe(metrics)
-    write_report(out, metrics, images, result.guard_map)
-    write_text_atomic(out / "metrics.json", json.dumps(metrics, indent=1) + "\n")
+    return json_safe(metrics)
+
+
+def run(cfg: RunConfig, log: Callable[[str], None] = lambda s: None) -> dict[str, Any]:
+    """Render, denoise, compare; write every output; return the metrics dict. metrics.json is
+    written last: a folder without it holds no finished run."""
+    state = _start(cfg, log)
+    _load_scene(state)
+    _fit_budget(state)
+    _render_and_denoise(state)
+    _compare(state)
+    _write_images(state)
+    state.timings["total_s"] = time.perf_counter() - state.started
+    metrics = _metrics(state)
+    write_report(Path(cfg.out), metrics, state.images, state.result.guard_map)
+    write_json_atomic(Path(cfg.out) / "metrics.json", metrics)
     return metrics
 
 

@@ -2,28 +2,16 @@
 in a real browser, and the tables of the run (synthetic figures, tiny images)."""
 from __future__ import annotations
 
-import importlib.util
 from pathlib import Path
-from types import ModuleType
 
 import numpy as np
-import pytest
 
+from benchmarks import evaluate
 from tests.cdp import Browser
 from tests.test_viewer import chromium  # noqa: F401  (fixture)
 
-ROOT = Path(__file__).resolve().parents[1]
-
-
-def load_evaluate() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("evaluate_script", ROOT / "benchmarks" / "evaluate.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
 
 def fake_run(rng: np.random.Generator, scenes: list[str], spps: list[int]) -> tuple[dict, dict]:
-    evaluate = load_evaluate()
     scores = lambda: {"psnr": float(rng.uniform(20, 40)), "relmse": float(rng.uniform(0, 1)),  # noqa: E731
                       "flip": float(rng.uniform(0, 1))}
     rows = {}
@@ -31,22 +19,24 @@ def fake_run(rng: np.random.Generator, scenes: list[str], spps: list[int]) -> tu
         rows[name] = {"ceiling_db": 35.0 if i == 0 else 50.0, "resolution": [16, 12]}
         for spp in spps:
             ours = scores()
+            bare = scores()
             rows[name][str(spp)] = {"render_s": 0.1, "ours_s": 0.2, "oidn_s": 0.05, "noisy": scores(),
-                                    "ours": ours, "oidn": scores(), "models": {"fast": {**ours, "s": 0.2}}}
+                                    "ours": ours, "ours_bare": bare, "oidn": scores(),
+                                    "models": {"fast": {**ours, "s": 0.2}}, "bare": {"fast": bare}}
     result = {"model": {"path": "model/weights/fast.ckpt"}, "models": {"fast": {}}, "spp": spps, "seed": 7,
               "ceiling_db": 40.0, "summary": evaluate.summarize(rows, spps, 40.0), "scenes": rows,
-              "wall_s": 12.0, "machine": {"cores": 2}}
-    images = {name: {k: rng.random((12, 16, 3)).astype(np.float32) for k in ("noisy", "ours", "oidn", "reference")}
-              for name in scenes}
+              "wall_s": 12.0, "machine": {"cores": 2}, "path": "halves"}
+    images = {name: {k: rng.random((12, 16, 3)).astype(np.float32)
+                     for k in ("noisy", "ours", "ours_bare", "oidn", "reference")} for name in scenes}
     return result, images
 
 
 def test_scoreboard_page_sets_and_tables(rng: np.random.Generator) -> None:
     result, images = fake_run(rng, ["alpha", "beta", "gamma"], [4, 16])
-    page = load_evaluate().scoreboard_page(result, images, 4)
+    page = evaluate.scoreboard_page(result, images, 4)
     assert [s.name for s in page.sets] == ["alpha", "beta", "gamma"]
-    assert [r.label for r in page.sets[0].rows] == ["noisy", "ours", "OIDN", "reference"]
-    assert all(r.flip for r in page.sets[0].rows[:3]) and page.sets[0].reference == page.sets[0].rows[3].image
+    assert [r.label for r in page.sets[0].rows] == ["noisy", "ours", "bare", "OIDN", "reference"]
+    assert all(r.flip for r in page.sets[0].rows[:4]) and page.sets[0].reference == page.sets[0].rows[4].image
     text = page.html()
     assert "Scored means (2 scenes" in text and "alpha*" in text and text.count("<tr>") > 3 * 2
 
@@ -54,7 +44,7 @@ def test_scoreboard_page_sets_and_tables(rng: np.random.Generator) -> None:
 def test_scoreboard_flips_scenes_in_a_browser(chromium: str, rng: np.random.Generator,  # noqa: F811
                                               tmp_path: Path) -> None:
     result, images = fake_run(rng, ["alpha", "beta"], [4])
-    path = load_evaluate().scoreboard_page(result, images, 4).write(tmp_path / "evaluate.html")
+    path = evaluate.scoreboard_page(result, images, 4).write(tmp_path / "evaluate.html")
     with Browser(chromium, 900, 700) as browser:
         browser.open(path)
         browser.wait_for("Number(document.body.dataset.draws) >= 1 && !document.body.dataset.busy")

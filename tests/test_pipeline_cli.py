@@ -80,7 +80,7 @@ def test_noise_guard_on_by_default_and_off_on_request(tmp_path: Path, demo_run: 
                  "--no-noise-guard", "--out", str(out)]) == 0
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["noise_guard"] is None
-    assert json.loads((out / "config.json").read_text())["noise_guard"] is False
+    assert json.loads((out / "config.json").read_text())["render"]["noise_guard"] is False
     # Unguarded, one-piece render: another noise realisation than the guarded two-halves render.
     assert not np.array_equal(read_exr(out / "noisy.exr").rgb, read_exr(demo_run / "noisy.exr").rgb)
 

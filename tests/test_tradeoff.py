@@ -11,6 +11,7 @@ import pytest
 from imaging.errors import DenoiserError
 from pipeline import denoise
 from pipeline.cli import tradeoff_main
+from pipeline.evaluation import RenderSettings
 from pipeline.oidn import oidn_available
 from pipeline.tradeoff import Point, TradeoffConfig, analyse, model_labels
 from tests.test_denoise import write_tiny_checkpoint
@@ -85,9 +86,11 @@ def test_missing_preset_weights_name_the_file(tmp_path: Path, monkeypatch: pytes
 
 def test_bad_settings(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     with pytest.raises(DenoiserError, match="distinct positive"):
-        TradeoffConfig(scene="x", out="y", spp=[2, 2], reference_spp=4).check()
-    with pytest.raises(DenoiserError, match="exactly one of --reference"):
-        TradeoffConfig(scene="x", out="y").check()
+        TradeoffConfig(RenderSettings("x", reference_spp=4), out="y", spp=[2, 2]).check()
+    with pytest.raises(DenoiserError, match="give one of --reference FILE or --reference-spp N"):
+        TradeoffConfig(RenderSettings("x"), out="y").check()
+    with pytest.raises(DenoiserError, match="either --reference or --reference-spp"):
+        TradeoffConfig(RenderSettings("x", reference="r.exr", reference_spp=4), out="y").check()
     with pytest.raises(SystemExit) as exc:
         tradeoff_main([str(DEMO), "--spp", "1,0", "--reference-spp", "4"])
     assert exc.value.code == 2

@@ -1,0 +1,166 @@
+"""The one evaluation path: render in two halves -> denoise as ``render-and-denoise`` does -> score.
+
+``render-and-denoise`` (:mod:`pipeline.run`, budget mode included), ``tradeoff``
+(:mod:`pipeline.tradeoff`) and the benchmarks that render and score (``benchmarks/evaluate.py``,
+``benchmarks/noise_guard.py``, ``benchmarks/budget.py``) all go through these functions, so a
+scoreboard measures exactly what users get:
+
+* :func:`render_input`: the render a denoiser is given. With the noise guard on (the default) it is
+  made of two halves of independent samples; their difference is the variance estimate that feeds
+  a model's noise input and the guard. Off: one piece, no variance.
+* :func:`denoise_output`: one model through :meth:`Denoiser.denoise_render` (its AOVs, noise input
+  and the guard at the strength for the render's spp), or OIDN colour-only on the same render;
+  with ``keep_network`` the bare network's output (the same forward pass, before the guard) too.
+* :func:`score`: PSNR (tonemapped), relMSE and FLIP against the reference (:mod:`imaging.metrics`).
+
+:func:`evaluate` chains the three for one scene, spp and seed.
+"""
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from imaging.errors import DenoiserError
+from imaging.exr import read_exr
+from imaging.metrics import all_metrics, flip, psnr, relmse
+from imaging.render import DEFAULT_MAX_MEMORY_MB, RenderResult, load_scene, pass_seeds, prepare, render_loaded
+from pipeline.denoise import DenoiseResult, Denoiser
+from pipeline.oidn import oidn_denoise
+
+AOVS = ("albedo", "sh_normal")  # what a model with auxiliary inputs needs rendered
+OIDN = "oidn"
+BARE = " bare"  # suffix of a model's bare network output in :func:`denoise_outputs`
+
+
+@dataclass
+class RenderSettings:
+    """How a command renders its scene and what it compares with (filled by the CLI, saved in
+    config.json). ``resolution`` [W, H] (None: the scene's own); ``params``: the scene's
+    ``$parameters``; ``max_memory_mb`` bounds the render's films and the denoiser's tiles;
+    ``noise_guard``: render in two halves and guard the models (off: one piece, the network's
+    output as it is); the reference is an EXR file or a render at ``reference_spp`` (another seed)."""
+
+    scene: str
+    resolution: tuple[int, int] | None = None
+    seed: int = 0
+    params: dict[str, str] = field(default_factory=dict)
+    max_memory_mb: float = DEFAULT_MAX_MEMORY_MB
+    noise_guard: bool = True
+    reference: str | None = None
+    reference_spp: int | None = None
+
+    def check(self, reference_required: bool = False) -> None:
+        """Raise :class:`DenoiserError` for both references given (or none, when one is required)."""
+        if self.reference and self.reference_spp:
+            raise DenoiserError("give either --reference or --reference-spp, not both")
+        if reference_required and not (self.reference or self.reference_spp):
+            raise DenoiserError("give one of --reference FILE or --reference-spp N (errors are measured "
+                                "against it)")
+
+    def load(self, aovs: Sequence[str] = ()) -> Any:
+        """The scene prepared (box filter, float32 film, ``aovs``) and loaded: a ``mi.Scene``."""
+        return load_scene(prepare(self.scene, self.resolution, aovs, self.params))
+
+
+def aovs_for(denoisers: Iterable[Denoiser]) -> tuple[str, ...]:
+    """The AOVs to render for these models: :data:`AOVS` if any of them needs them, else none."""
+    return AOVS if any(d.needs_aovs for d in denoisers) else ()
+
+
+def render_input(scene: Any, spp: int, settings: RenderSettings, aovs: Sequence[str] = ()) -> RenderResult:
+    """The render a denoiser is given: ``spp`` samples at ``settings.seed``, in two halves (with
+    their variance) unless the noise guard is off."""
+    return render_loaded(scene, spp, settings.seed, aovs, halves=settings.noise_guard,
+                         max_memory_mb=settings.max_memory_mb)
+
+
+def read_reference(settings: RenderSettings) -> np.ndarray | None:
+    """The reference EXR's HxWx3 radiance (read before rendering, so a bad file fails early), or
+    None when there is none or it is to be rendered (:func:`render_reference`)."""
+    return read_exr(settings.reference).rgb if settings.reference else None
+
+
+def render_reference(settings: RenderSettings, scene: Any, aovs: Sequence[str] = ()) -> RenderResult:
+    """The reference at ``settings.reference_spp`` with a seed of its own; ``scene`` is reused
+    unless it renders AOVs (then the scene is loaded again without them)."""
+    plain = settings.load() if aovs else scene
+    return render_loaded(plain, settings.reference_spp, pass_seeds(settings.seed, 2)[1],
+                         max_memory_mb=settings.max_memory_mb)
+
+
+def check_reference(settings: RenderSettings, reference: np.ndarray, render: RenderResult) -> None:
+    """Raise :class:`DenoiserError` when the reference and the render differ in size."""
+    if reference.shape != render.rgb.shape:
+        raise DenoiserError(f"{settings.reference}: reference is {reference.shape[1]}x{reference.shape[0]}, "
+                            f"render is {render.rgb.shape[1]}x{render.rgb.shape[0]}")
+
+
+@dataclass
+class Output:
+    """A denoiser's image of a render (HxWx3 float32 linear radiance) and its seconds; ``result``
+    is our model's whole :class:`DenoiseResult` (None for OIDN)."""
+
+    image: np.ndarray
+    seconds: float
+    result: DenoiseResult | None = None
+
+
+def denoise_output(render: RenderResult, denoiser: Denoiser | None, keep_network: bool = False) -> Output:
+    """``denoiser`` applied to ``render`` as ``render-and-denoise`` applies it; None: OIDN
+    colour-only (the anchor, as it comes: no guard). ``keep_network``: keep the bare network's
+    output in ``result.network``."""
+    if denoiser is None:
+        return Output(*oidn_denoise(render.rgb))
+    result = denoiser.denoise_render(render, keep_network)
+    return Output(result.image, result.seconds, result)
+
+
+def denoise_outputs(render: RenderResult, denoisers: Mapping[str, Denoiser], oidn: bool = False,
+                    bare: bool = False) -> dict[str, Output]:
+    """Every model's :func:`denoise_output` under its name; with ``bare`` also its bare network
+    output (``NAME bare``, the same forward pass: the seconds are the model's); with ``oidn``,
+    OIDN's under ``oidn``."""
+    outputs: dict[str, Output] = {}
+    for name, denoiser in denoisers.items():
+        output = outputs[name] = denoise_output(render, denoiser, keep_network=bare)
+        if bare:
+            assert output.result is not None and output.result.network is not None
+            outputs[name + BARE] = Output(output.result.network, output.seconds)
+    if oidn:
+        outputs[OIDN] = denoise_output(render, None)
+    return outputs
+
+
+def score(image: np.ndarray, reference: np.ndarray, full: bool = False) -> dict[str, float]:
+    """PSNR dB (tonemapped), relMSE and FLIP of ``image`` against ``reference``; ``full``: every
+    metric of :func:`imaging.metrics.all_metrics` (SSIM, SMAPE, HDR-FLIP too)."""
+    if full:
+        return all_metrics(image, reference)
+    return {"psnr": psnr(image, reference), "relmse": relmse(image, reference), "flip": flip(image, reference)}
+
+
+@dataclass
+class Evaluation:
+    """One scene at one spp: the render, each denoiser's output and the scores of ``noisy`` (the
+    render) and of every output."""
+
+    render: RenderResult
+    outputs: dict[str, Output]
+    scores: dict[str, dict[str, float]]
+
+
+def evaluate(scene: Any, spp: int, settings: RenderSettings, reference: np.ndarray,
+             denoisers: Mapping[str, Denoiser], oidn: bool = True, bare: bool = False,
+             aovs: Sequence[str] = ()) -> Evaluation:
+    """Render ``scene`` at ``spp`` as :func:`render_input` does, denoise it with every model (and
+    OIDN) as :func:`denoise_outputs` does, and score everything against ``reference``."""
+    render = render_input(scene, spp, settings, aovs)
+    check_reference(settings, reference, render)
+    outputs = denoise_outputs(render, denoisers, oidn, bare)
+    scores = {"noisy": score(render.rgb, reference)}
+    scores.update({name: score(output.image, reference) for name, output in outputs.items()})
+    return Evaluation(render, outputs, scores)
+

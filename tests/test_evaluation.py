@@ -1,0 +1,108 @@
+"""The one evaluation path (render in halves -> denoise as render-and-denoise does -> score): what
+each step gives, and that the scoreboard (benchmarks/evaluate.py) and ``render-and-denoise`` report
+the same PSNR for the same scene, spp and seed."""
+from __future__ import annotations
+
+import json
+import shutil
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from benchmarks import evaluate as scoreboard
+from imaging.errors import DenoiserError
+from imaging.exr import write_exr
+from imaging.metrics import flip, psnr, relmse
+from pipeline.cli import main as render_main
+from pipeline.denoise import Denoiser
+from pipeline.evaluation import BARE, OIDN, RenderSettings, denoise_outputs, evaluate, render_input, score
+from pipeline.oidn import oidn_available
+from tests.test_denoise import TINY, write_tiny_checkpoint
+
+ROOT = Path(__file__).resolve().parents[1]
+DEMO = ROOT / "scenes" / "examples" / "demo.xml"
+SIZE = (32, 24)
+
+
+@pytest.fixture(scope="module")
+def ckpt(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """An untrained model that changes the image beyond the noise (a residual one is the identity)."""
+    return write_tiny_checkpoint(tmp_path_factory.mktemp("model") / "tiny.ckpt", replace(TINY, output="direct"))
+
+
+@pytest.fixture(scope="module")
+def demo() -> tuple[RenderSettings, object]:
+    settings = RenderSettings(str(DEMO), SIZE, seed=3)
+    return settings, settings.load()
+
+
+def test_render_input_is_two_halves_unless_the_guard_is_off(demo: tuple) -> None:
+    settings, scene = demo
+    halves = render_input(scene, 4, settings)
+    assert halves.variance is not None and halves.variance.shape == halves.rgb.shape and halves.spp == 4
+    plain = render_input(scene, 4, RenderSettings(str(DEMO), SIZE, seed=3, noise_guard=False))
+    assert plain.variance is None and not np.array_equal(plain.rgb, halves.rgb)
+
+
+def test_outputs_are_the_default_path_and_the_bare_network(demo: tuple, ckpt: Path) -> None:
+    settings, scene = demo
+    render = render_input(scene, 4, settings)
+    den = Denoiser(ckpt)
+    outputs = denoise_outputs(render, {"tiny": den}, oidn=oidn_available(), bare=True)
+    assert set(outputs) == {"tiny", "tiny" + BARE} | ({OIDN} if oidn_available() else set())
+    assert np.array_equal(outputs["tiny"].image, den.denoise_render(render).image)
+    # A flat RGB model has no noise input: its bare output is the unguarded one.
+    assert np.array_equal(outputs["tiny" + BARE].image, den.denoise_array(render.rgb).image)
+    assert outputs["tiny"].result.guard_weight < 0.9
+    assert not np.array_equal(outputs["tiny"].image, outputs["tiny" + BARE].image)
+
+
+def test_evaluate_scores_every_output_with_the_metrics(demo: tuple, ckpt: Path) -> None:
+    settings, scene = demo
+    reference = render_input(scene, 64, RenderSettings(str(DEMO), SIZE, seed=99)).rgb
+    ev = evaluate(scene, 4, settings, reference, {"tiny": Denoiser(ckpt)}, oidn=False, bare=True)
+    assert set(ev.scores) == {"noisy", "tiny", "tiny" + BARE}
+    image = ev.outputs["tiny"].image
+    assert ev.scores["tiny"] == {"psnr": psnr(image, reference), "relmse": relmse(image, reference),
+                                 "flip": flip(image, reference)}
+    assert score(image, reference, full=True)["psnr"] == ev.scores["tiny"]["psnr"]
+    with pytest.raises(DenoiserError, match="reference is 8x8, render is 32x24"):
+        evaluate(scene, 4, settings, reference[:8, :8], {}, oidn=False)
+
+
+def test_settings_refuse_two_references_or_none_when_needed() -> None:
+    with pytest.raises(DenoiserError, match="not both"):
+        RenderSettings("s.xml", reference="r.exr", reference_spp=4).check()
+    with pytest.raises(DenoiserError, match="give one of --reference"):
+        RenderSettings("s.xml").check(reference_required=True)
+    RenderSettings("s.xml").check()
+
+
+@pytest.mark.slow
+def test_scoreboard_and_render_and_denoise_give_the_same_psnr(tmp_path: Path, ckpt: Path) -> None:
+    """The same scene, spp and seed through ``python -m benchmarks.evaluate`` and through
+    ``render-and-denoise``: the same noisy, denoised and OIDN figures."""
+    folder = tmp_path / "eval" / "demo"
+    shutil.copytree(DEMO.parent, folder)
+    (folder / "demo.xml").rename(folder / "scene.xml")
+    settings = RenderSettings(str(folder / "scene.xml"), SIZE, seed=123)
+    reference = render_input(settings.load(), 64, settings).rgb
+    write_exr(folder / "reference.exr", reference)
+    (folder / "reference.json").write_text(json.dumps({"reference_psnr_ceiling_db": 45.0,
+                                                       "shape": [SIZE[1], SIZE[0], 3]}))
+    spp = 4
+    assert scoreboard.main(["--eval-dir", str(tmp_path / "eval"), "--model", str(ckpt), "--spp", str(spp),
+                            "--out", str(tmp_path / "board"), "--quiet"]) == 0
+    board = json.loads((tmp_path / "board" / "evaluate.json").read_text())["scenes"]["demo"][str(spp)]
+    assert render_main([str(folder / "scene.xml"), "--res", *map(str, SIZE), "--spp", str(spp), "--seed",
+                        str(scoreboard.SEED), "--reference", str(folder / "reference.exr"), "--model", str(ckpt),
+                        "--out", str(tmp_path / "run"), "--quiet"]) == 0
+    quality = json.loads((tmp_path / "run" / "metrics.json").read_text())["quality"]
+    assert quality["denoised"]["psnr"] == board["ours"]["psnr"]
+    assert quality["noisy"]["psnr"] == board["noisy"]["psnr"]
+    assert quality["denoised"]["relmse"] == board["ours"]["relmse"]
+    if oidn_available():
+        assert quality["oidn"]["psnr"] == board["oidn"]["psnr"]
+    assert board["ours_bare"]["psnr"] != board["ours"]["psnr"]
