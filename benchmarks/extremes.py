@@ -1,7 +1,7 @@
 """The figures behind the robustness tests (tests/test_extremes.py): energy preservation, PSNR of a
 converged 4096-spp image before and after denoising, and peak memory denoising an 8K image.
 
-    .venv/bin/python benchmarks/extremes.py [--model PATH] [--quick] [--size 7680x4320]
+    python -m benchmarks.extremes [--model PATH] [--quick] [--size 7680x4320]
         [--max-memory-mb 1024] [--parts energy,converged,memory]
 
 * energy: scenes rendered at 16 spp (the bundled demo; without --quick also three eval scenes from
@@ -33,13 +33,12 @@ from typing import Any
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from pipeline.denoise import DEFAULT_WEIGHTS, Denoiser
 
-from imaging.hashing import file_sha256  # noqa: E402
-from imaging.metrics import psnr  # noqa: E402
-from imaging.render import render  # noqa: E402
+from imaging.hashing import file_sha256
+from imaging.metrics import psnr
+from imaging.render import render
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results" / "extremes.json"
@@ -121,10 +120,10 @@ def memory_child(model: str, width: int, height: int, max_memory_mb: float) -> d
 
 
 def memory(model: str, width: int, height: int, max_memory_mb: float) -> dict[str, Any]:
-    code = ("import json, sys; sys.path.insert(0, sys.argv[1]); from benchmarks.extremes import memory_child; "
-            "print(json.dumps(memory_child(sys.argv[2], int(sys.argv[3]), int(sys.argv[4]), float(sys.argv[5]))))")
-    proc = subprocess.run([sys.executable, "-c", code, str(ROOT), model, str(width), str(height),
-                           str(max_memory_mb)], capture_output=True, text=True, cwd=ROOT)
+    code = ("import json, sys; from benchmarks.extremes import memory_child; "  # cwd ROOT: importable
+            "print(json.dumps(memory_child(sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), float(sys.argv[4]))))")
+    proc = subprocess.run([sys.executable, "-c", code, model, str(width), str(height), str(max_memory_mb)],
+                          capture_output=True, text=True, cwd=ROOT)
     if proc.returncode != 0:
         raise SystemExit(f"extremes: memory child failed: {proc.stderr.strip().splitlines()[-1:]}")
     return json.loads(proc.stdout.strip().splitlines()[-1])

@@ -32,14 +32,12 @@ from typing import Any
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from model.architectures import build_model  # noqa: E402
-from model.checkpoint import save_checkpoint  # noqa: E402
-from model.config import PRESETS, preset  # noqa: E402
-from model.unet import macs_per_pixel  # noqa: E402
-from pipeline.denoise import Denoiser  # noqa: E402
-from pipeline.oidn import oidn_available, oidn_denoise  # noqa: E402
+from model.architectures import build_model
+from model.checkpoint import save_checkpoint
+from model.config import PRESETS, preset
+from model.unet import macs_per_pixel
+from pipeline.denoise import Denoiser
+from pipeline.oidn import oidn_available, oidn_denoise
 
 RESULTS = Path(__file__).resolve().parent / "results" / "inference.json"
 SIZES = ((128, 128), (256, 256), (1280, 720), (1920, 1080))

@@ -43,9 +43,11 @@ AOVS = ("albedo", "sh_normal")
 _CHILD = r"""
 import gc, json, sys, time
 job = json.loads(sys.argv[1])
-sys.path.insert(0, job["code"])
 import numpy as np
-from imaging.render import load_scene, prepare, render_loaded
+try:  # the working directory is the checkout measured
+    from imaging.render import load_scene, prepare, render_loaded
+except ImportError:  # a revision from before the foundation package
+    from pipeline.render import load_scene, prepare, render_loaded
 
 def status(key):
     for line in open("/proc/self/status"):
@@ -82,7 +84,7 @@ def run_child(code: Path, res: tuple[int, int], spp: int, budget: float | None, 
     with tempfile.TemporaryDirectory(prefix="render-memory-home-") as home:
         env = {**os.environ, "HOME": home, "PYTHONPATH": str(code)}
         proc = subprocess.run([sys.executable, "-c", _CHILD, json.dumps(job)], capture_output=True, text=True,
-                              cwd=ROOT, env=env)
+                              cwd=code, env=env)
     if proc.returncode != 0:
         raise RuntimeError(f"child {job} failed: {proc.stderr.strip().splitlines()[-1:]}")
     return json.loads(proc.stdout.strip().splitlines()[-1])

@@ -16,7 +16,7 @@ It prints, per preset, the bound next to the goal: the inference bound in second
 against OIDN's measured s/MP (benchmarks/results/inference.json, same machine), and the training
 bound in patches/s against 4x the naive rate (benchmarks/results/train_throughput.json).
 
-    .venv/bin/python benchmarks/roofline.py [--presets fast,balanced,high,paper] [--repeat 5]
+    python -m benchmarks.roofline [--presets fast,balanced,high,paper] [--repeat 5]
 
 Writes benchmarks/results/roofline.json.
 """
@@ -25,7 +25,6 @@ from __future__ import annotations
 import argparse
 import json
 import platform
-import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -34,12 +33,10 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from model.architectures import build_model
+from model.config import preset
+
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-from model.config import preset  # noqa: E402
-from model.architectures import build_model  # noqa: E402
-
 RESULTS = ROOT / "benchmarks" / "results"
 PATCH, BATCH = 28, 64
 INFER_SIDE = 1024

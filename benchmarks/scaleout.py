@@ -1,7 +1,7 @@
 """Scale-out: scenes/hour on 1 vs 2 local Dask workers, patches/s with 1 vs 2 DDP ranks, and an
 estimate of what N machines would give, from the measured per-scene and per-step costs.
 
-    .venv/bin/python benchmarks/scaleout.py [--quick] [--scenes 4] [--res 128] [--spp 4,16,64,128]
+    python -m benchmarks.scaleout [--quick] [--scenes 4] [--res 128] [--spp 4,16,64,128]
         [--ref-spp 4096] [--steps 30] [--warmup-steps 5] [--preset fast] [--batch 64]
         [--machines 1,2,4,8,16] [--link-gbps 10] [--hop-latency-us 100] [--out FILE]
 
@@ -52,17 +52,16 @@ from typing import Any
 
 BASE_ENV = dict(os.environ)  # before anything (Dask's nanny) changes it
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
 
-from torch import nn  # noqa: E402
+from torch import nn
 
-from dataset_gen.cluster import SchedulerSpec, local_threads  # noqa: E402
-from dataset_gen.config import DatasetConfig  # noqa: E402
-from dataset_gen.generate import GenerateSummary, generate_dataset  # noqa: E402
-from model.config import PRESETS  # noqa: E402
-from model.architectures import build_model, count_parameters  # noqa: E402
-from model.synthetic import write_synthetic_dataset  # noqa: E402
-from scenes.registry import FAMILIES  # noqa: E402
+from dataset_gen.cluster import SchedulerSpec, local_threads
+from dataset_gen.config import DatasetConfig
+from dataset_gen.generate import GenerateSummary, generate_dataset
+from model.config import PRESETS
+from model.architectures import build_model, count_parameters
+from model.synthetic import write_synthetic_dataset
+from scenes.registry import FAMILIES
 
 RESULTS = Path(__file__).resolve().parent / "results" / "scaleout.json"
 FOREIGN_LIMIT = 0.1  # cores used by other processes above which a setting is flagged

@@ -26,12 +26,9 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
 from pathlib import Path
 from typing import Any
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 RESULTS = Path(__file__).resolve().parent / "results"
 UNET = ["--preset", "u-balanced", "--patch", "128", "--batch", "8", "--lr", "1e-3", "--lr-warmup", "100"]

@@ -12,7 +12,7 @@ val images and per spp), training seconds, and the steps/seconds each run needed
 PSNR that both the DenseNet baseline and the plain CNN reach ("time to the same validation
 quality", the paper's central claim).
 
-Usage: python benchmarks/train_ablations.py --data data/train [--steps 800] [--runs runs/ablations]
+Usage: python -m benchmarks.train_ablations --data data/train [--steps 800] [--runs runs/ablations]
        [--only baseline,pu] [--report-only]
 Writes benchmarks/results/train_ablations.json and .md.
 """
@@ -25,11 +25,10 @@ import sys
 from pathlib import Path
 from typing import Any
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from imaging.atomic_io import write_text_atomic
+from model.run_log import RunLog
 
-from imaging.atomic_io import write_text_atomic  # noqa: E402
-from model.run_log import RunLog  # noqa: E402
+ROOT = Path(__file__).resolve().parents[1]
 
 BASE = ["--preset", "fast", "--transfer", "log", "--output", "residual", "--lr", "0.001"]
 RUNS: dict[str, list[str]] = {

@@ -8,7 +8,7 @@ batch-64 variant from one initialisation on one batch against a float64 computat
 step; exact variants should show the same float32 rounding error as naive, bf16 shows its own
 (what "does not change what is learned" means in numbers).
 
-    .venv/bin/python benchmarks/train_throughput.py [--presets fast balanced high] [--rounds 3]
+    python -m benchmarks.train_throughput [--presets fast balanced high] [--rounds 3]
         [--steps 3] [--no-compile] [--quick]
 
 Prints a table and writes benchmarks/results/train_throughput.json (presets not measured in this
@@ -31,14 +31,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from model.config import preset  # noqa: E402
-from model.architectures import build_model, count_parameters  # noqa: E402
-from model.patches import PatchConfig, TrainingPair, sample_batch  # noqa: E402
-from model.loss import denoising_loss  # noqa: E402
-from model.step import NonFiniteGuard, train_step  # noqa: E402
-from model.train import to_tensor  # noqa: E402
+from model.config import preset
+from model.architectures import build_model, count_parameters
+from model.patches import PatchConfig, TrainingPair, sample_batch
+from model.loss import denoising_loss
+from model.step import NonFiniteGuard, train_step
+from model.train import to_tensor
 
 RESULTS = Path(__file__).resolve().parent / "results" / "train_throughput.json"
 PATCH = 28
