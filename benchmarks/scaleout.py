@@ -307,7 +307,7 @@ def _parse() -> argparse.Namespace:
     p.add_argument("--scenes", type=int, default=4)
     p.add_argument("--res", type=int, default=128)
     p.add_argument("--spp", default="4,16,64,128")
-    p.add_argument("--ref-spp", type=int, default=4096, help="default: the README's dataset command")
+    p.add_argument("--ref-spp", type=int, default=4096, help="default: the dataset command of docs/training.md")
     p.add_argument("--steps", type=int, default=30)
     p.add_argument("--warmup-steps", type=int, default=5, help="first steps of each run left out of the rates")
     p.add_argument("--preset", default="fast", choices=sorted(PRESETS))

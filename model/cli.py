@@ -100,7 +100,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-oidn", dest="oidn", action="store_const", const=False, help="skip the OIDN baseline")
     p.add_argument("--no-progress", dest="progress", action="store_const", const=False)
     p.add_argument("--nproc", type=int, help="train with DDP on this many local processes (launches torchrun; "
-                                             "BatchNorm then works per process: see README)")
+                                             "BatchNorm then works per process: see docs/cluster.md)")
     return p
 
 

@@ -55,7 +55,7 @@ class TrainConfig:
     ``cpu_budget_s`` > 0: stop (validate and save) once the optimisation has used this many
     process CPU seconds over all sittings — runs of different cost compared at equal CPU time.
     ``converged_pairs``: besides each scene's noisy renders, train on (reference, reference) — a
-    converged input must come out unchanged (off in the paper; see README "Choices, measured").
+    converged input must come out unchanged (off in the paper; see docs/training.md).
     """
 
     data: str

@@ -37,7 +37,7 @@ from pipeline.pareto import error_at_spp, metric_error
 DENOISE_SHARE = 1.0 / 3.0
 PROBE_SHARE = 0.05
 MAX_SPP = 1 << 16
-# Best quality first, as measured on ../shared/eval-scenes (README, scoreboard): the shipped `fast`
+# Best quality first, as measured on ../shared/eval-scenes (docs/scoreboard.md): the shipped `fast`
 # is level with `balanced` at 16 spp and ahead at 128 spp, `high` last — and `fast` is the cheapest.
 PRESET_ORDER = ("fast", "balanced", "high")
 DEFAULT_CURVES = WEIGHTS_DIR / "tradeoff.json"

@@ -1,0 +1,378 @@
+"""The measured tables of README.md and docs/*.md, rendered from the result files.
+
+A table stands in a page between ``<!-- table:NAME -->`` and ``<!-- /table -->``; its first line
+names the command, the result file, the date and the machine's load as the file records them
+("not recorded" where it does not). ``python -m benchmarks.readme_tables`` rewrites every table from
+``benchmarks/results/*.json`` (and, for training, the shipped ``model/weights/*_log.jsonl``);
+``--check`` only lists the tables that differ from what the files give (``tests/test_readme_tables.py``
+runs it, so a hand-edited or stale figure fails the tests).
+
+To add a table: write ``def NAME(results: Results) -> list[str]`` below (caption first, via
+:func:`caption`), add it to ``TABLES`` and put the two markers where it should stand.
+"""
+from __future__ import annotations
+
+import json
+import math
+import re
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from imaging.atomic_io import write_text_atomic
+from imaging.usage import OneLineParser
+
+ROOT = Path(__file__).resolve().parents[1]
+MARKERS = re.compile(r"(<!-- table:([a-z0-9_]+) -->\n)(.*?)(<!-- /table -->)", re.S)
+
+
+class Results:
+    """The result files of one checkout: ``benchmarks/results/NAME.json`` and the shipped training
+    logs ``model/weights/PRESET_log.jsonl``."""
+
+    def __init__(self, root: Path = ROOT) -> None:
+        self.root = root
+
+    def json(self, name: str) -> dict[str, Any]:
+        return json.loads((self.root / "benchmarks" / "results" / f"{name}.json").read_text())
+
+    def log(self, preset: str) -> list[dict[str, Any]]:
+        path = self.root / "model" / "weights" / f"{preset}_log.jsonl"
+        return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+
+    def train_config(self, preset: str) -> dict[str, Any]:
+        return json.loads((self.root / "model" / "weights" / f"{preset}_train_config.json").read_text())
+
+
+def _load(data: dict[str, Any]) -> str:
+    """The 1-minute load average at the start and end of a run, as the file records it."""
+    machine = data.get("machine") if isinstance(data.get("machine"), dict) else {}
+    cores = machine.get("cores") or machine.get("cpus") or data.get("cpus")
+    pairs = [(machine.get("load_before"), machine.get("load_after")),
+             (machine.get("loadavg_before"), machine.get("loadavg_after")),
+             (data.get("load_average_before"), data.get("load_average_after")),
+             (data.get("load_avg_before"), data.get("load_avg_after"))]
+    before, after = next(((b, a) for b, a in pairs if b is not None), (None, None))
+    if before is None and isinstance(data.get("machine"), str):  # "x86_64, 2 cores (load 1.3 at start)"
+        found = re.search(r"load ([\d.]+)", data["machine"])
+        before = float(found.group(1)) if found else None
+    if before is None:
+        return "load not recorded"
+    first = lambda v: v[0] if isinstance(v, list) else v  # noqa: E731  (1-minute average)
+    text = f"load {first(before):.1f} at the start" + (f", {first(after):.1f} at the end" if after is not None else "")
+    return text + (f" on {cores} cores" if cores else "")
+
+
+def caption(command: str, source: str, data: dict[str, Any] | None = None, note: str = "") -> str:
+    """The line above a table: ``command`` (the file's own record of it when it has one), ``source``
+    (the result file), the date and the load recorded; ``note``: what else a reader must know."""
+    data = data or {}
+    cmd = f"`{data['command']}`" if data.get("command") else f"`{command}` (command not recorded in the file)"
+    line = f"Source: {cmd} → `{source}`; {data.get('date') or 'date not recorded'}; {_load(data)}."
+    return f"{line} {note}" if note else line
+
+
+def _f(value: Any, digits: int = 2) -> str:
+    if value is None or (isinstance(value, float) and not math.isfinite(value)):
+        return "-"
+    return f"{value:,.{digits}f}" if isinstance(value, float) else f"{value:,}"
+
+
+def _table(header: list[str], rows: list[list[str]], right: int = 1) -> list[str]:
+    """Markdown table; columns from index ``right`` on are right-aligned."""
+    align = ["---" if i < right else "---:" for i in range(len(header))]
+    return ["| " + " | ".join(header) + " |", "|" + "|".join(align) + "|",
+            *("| " + " | ".join(r) + " |" for r in rows)]
+
+
+# --- quality ---------------------------------------------------------------------------------------
+
+def _scoreboard_path(data: dict[str, Any]) -> str:
+    return (f"Path: {data['path']}." if "path" in data else
+            "Measured before the scoreboard used the default path: every model's bare network on one-piece "
+            "renders (no noise guard); `python -m benchmarks.evaluate` now scores the default path.")
+
+
+def scoreboard(results: Results) -> list[str]:
+    """Scored means of every model (and its bare network), the noisy input and OIDN per spp."""
+    data = results.json("evaluate")
+    s = data["summary"]["scored"]
+    rows = []
+    for spp in data["spp"]:
+        m = s[str(spp)]
+        rows.append(["noisy", str(spp), _f(m["noisy_psnr"]), _f(m["noisy_relmse"], 4), _f(m["noisy_flip"], 3), "-"])
+        for name, e in m["models"].items():
+            rows.append([Path(name).stem, str(spp), _f(e["psnr"]), _f(e["relmse"], 4), _f(e["flip"], 3),
+                         _f(e["s_per_mp"])])
+            if "bare" in e:
+                rows.append([f"{Path(name).stem} bare", str(spp), _f(e["bare"]["psnr"]),
+                             _f(e["bare"]["relmse"], 4), _f(e["bare"]["flip"], 3), ""])
+        rows.append(["OIDN 2.5 colour-only", str(spp), _f(m["oidn_psnr"]), _f(m["oidn_relmse"], 4),
+                     _f(m["oidn_flip"], 3), _f(m["oidn_s_per_mp"])])
+    note = (f"Mean over the {s['scenes']} eval scenes whose reference ceiling is >= {data['ceiling_db']:g} dB, "
+            f"seed {data['seed']}; PSNR dB (tonemapped), relMSE, FLIP against the 2048-spp references; "
+            f"s/MP: denoise seconds per megapixel in this run. {_scoreboard_path(data)}")
+    return [caption("python -m benchmarks.evaluate", "benchmarks/results/evaluate.json", data, note), "",
+            *_table(["denoiser", "spp", "PSNR", "relMSE", "FLIP", "s/MP"], rows)]
+
+
+def scoreboard_scenes(results: Results) -> list[str]:
+    """Every scene and spp: PSNR of noisy / ours (/ bare) / OIDN, relMSE and FLIP of ours and OIDN."""
+    data = results.json("evaluate")
+    bare = any("ours_bare" in e for row in data["scenes"].values() for k, e in row.items() if k.isdigit())
+    who = ["noisy", "ours", *(["ours_bare"] if bare else []), "oidn"]
+    labels = {"noisy": "noisy", "ours": "ours", "ours_bare": "bare", "oidn": "OIDN"}
+    header = ["scene", "spp", *(f"{labels[w]} PSNR" for w in who), "ours relMSE",
+              "OIDN relMSE", "ours FLIP", "OIDN FLIP"]
+    rows = []
+    for name, row in data["scenes"].items():
+        flag = "*" if row["ceiling_db"] < data["ceiling_db"] else ""
+        for spp in data["spp"]:
+            e = row[str(spp)]
+            rows.append([name + flag, str(spp), *(_f(e[w]["psnr"]) for w in who), _f(e["ours"]["relmse"], 4),
+                         _f(e["oidn"]["relmse"], 4), _f(e["ours"]["flip"], 3), _f(e["oidn"]["flip"], 3)])
+    note = (f"Model `{Path(data['model']['path']).name}` (ours); * = reference ceiling below "
+            f"{data['ceiling_db']:g} dB, not in the scored mean. {_scoreboard_path(data)}")
+    return [caption("python -m benchmarks.evaluate", "benchmarks/results/evaluate.json", data, note), "",
+            *_table(header, rows)]
+
+
+def noise_guard_settings(results: Results) -> list[str]:
+    """Mean PSNR of every guard setting tried, per regime and spp."""
+    data = results.json("noise_guard")
+    keys = [k for k in data["summary"]["noisy"][next(k for k in data["summary"]["noisy"] if k != "scenes")]
+            if k.startswith("guard")]
+    columns = [(regime, spp) for regime in ("noisy", "converged")
+               for spp in sorted((k for k in data["summary"][regime] if k != "scenes"), key=int)]
+    rows = [[k + (" (default)" if k == data["default"] else ""),
+             *(_f(data["summary"][r][spp][k]["mean_psnr"]) for r, spp in columns)] for k in ["model", *keys]]
+    note = ("Mean PSNR dB of the network alone (`model`) and with the guard at window radius r and pivot p "
+            "(strength max(1, p/spp); p0: the plain Wiener weight), on the same renders and network output.")
+    return [caption("python -m benchmarks.noise_guard", "benchmarks/results/noise_guard.json", data, note), "",
+            *_table(["setting", *(f"{'eval' if r == 'noisy' else 'converged'} {spp} spp" for r, spp in columns)],
+                    rows)]
+
+
+def noise_guard(results: Results) -> list[str]:
+    """Mean PSNR per regime and spp: noisy, the bare network, the network + default guard, OIDN."""
+    data = results.json("noise_guard")
+    default = data["default"]
+    rows = []
+    for regime, title in (("noisy", f"eval scenes ({data['summary']['noisy']['scenes']} scored, 2048-spp refs)"),
+                          ("converged", f"converged ({data['summary']['converged']['scenes']} cases, "
+                                        f"{data['reference_spp_converged']}-spp refs)")):
+        summary = data["summary"][regime]
+        for i, spp in enumerate(sorted((k for k in summary if k != "scenes"), key=int)):
+            e = summary[str(spp)]
+            cells = [f"{_f(e[k]['mean_psnr'])} ({e[k]['worst_vs_noisy_db']:+.2f})" if k != "noisy"
+                     else _f(e[k]["mean_psnr"]) for k in ("noisy", "model", default, "oidn")]
+            rows.append([title if i == 0 else "", str(spp), *cells])
+    note = (f"Model `{data['model']}`, every render in two halves; mean PSNR dB, in brackets the worst change "
+            f"against the noisy render; the guard's default setting: {default}.")
+    return [caption("python -m benchmarks.noise_guard", "benchmarks/results/noise_guard.json", data, note), "",
+            *_table(["regime", "spp", "noisy", "network alone", "network + guard", "OIDN"], rows, right=1)]
+
+
+# --- speed -----------------------------------------------------------------------------------------
+
+def inference(results: Results) -> list[str]:
+    """Seconds per megapixel of the whole chain for every measured variant, per image size."""
+    data = results.json("inference")
+    names = [k for k, v in next(iter(data["sizes"].values())).items() if isinstance(v, dict) and "s_per_mp" in v]
+    rows = [[size, *(_f(data["sizes"][size].get(n, {}).get("s_per_mp")) for n in names)] for size in data["sizes"]]
+    note = "Seconds per megapixel, median of the runs; OIDN 2.5 colour-only on the same image in the same run."
+    return [caption("python -m benchmarks.inference", "benchmarks/results/inference.json", data, note), "",
+            *_table(["size", *names], rows)]
+
+
+def roofline(results: Results) -> list[str]:
+    """Each preset's convolutions alone: s/MP at inference, patches/s of a training step."""
+    data = results.json("roofline")
+    rows = [[f"`{name}`", _f(p["macs_per_pixel"]), _f(p["infer_conv_s_per_mp"]), _f(p["infer_conv_gflops"], 1),
+             _f(p["train_patches_per_s_bound"], 0), _f(data["goals"]["naive_patches_per_s"].get(name))]
+            for name, p in data["presets"].items()]
+    note = (f"Every convolution of a preset timed alone (its shape, channels_last, warm) and summed: a lower "
+            f"bound for our code. torch.mm peak on this machine: {data['matmul_peak_gflops']:.0f} GFLOP/s.")
+    return [caption("python -m benchmarks.roofline", "benchmarks/results/roofline.json", data, note), "",
+            *_table(["preset", "MACs/pixel", "inference convs s/MP", "GFLOP/s", "train-step convs patches/s",
+                     "naive train patches/s"], rows)]
+
+
+def budget(results: Results) -> list[str]:
+    """Budget mode on the eval scenes: runs within 20 %, range of actual/budget, mean PSNR."""
+    data = results.json("budget")
+    rows = [[b, f"{s['within']}/{s['runs']}", f"{s['min_ratio']:.2f}–{s['max_ratio']:.2f}", _f(s["mean_psnr"]),
+             ", ".join(f"{m} {n}" for m, n in sorted(s["models"].items()))]
+            for b, s in data["summary"]["per_budget"].items()]
+    note = (f"render-and-denoise --time-budget B --model auto on every eval scene; within: actual time within "
+            f"{100 * data['tolerance']:.0f}% of the budget.")
+    return [caption("python -m benchmarks.budget --budgets 10", "benchmarks/results/budget.json", data, note), "",
+            *_table(["budget s", "within", "actual / budget", "mean PSNR dB", "models chosen"], rows)]
+
+
+# --- training --------------------------------------------------------------------------------------
+
+TRAINED = ("pretrain_fast", "fast", "balanced", "high")
+TRAIN_COMMAND = "train --out runs/<preset> ... (docs/training.md)"
+
+
+def presets(results: Results) -> list[str]:
+    """The shipped checkpoints: network size, best validation and when it was reached."""
+    rows = []
+    for preset in TRAINED:
+        log, cfg = results.log(preset), results.train_config(preset)
+        val = [r for r in log if r["type"] == "val"]
+        best = max(val, key=lambda r: r["psnr"])
+        train_s = next((r["train_s"] for r in log if r["type"] == "train" and r["step"] == best["step"]), None)
+        m = cfg["model"]
+        rows.append([f"`{preset}`", f"{m['growth']}, {m['layers']}", _f(best["step"]), _f(log[-1]["step"]),
+                     _f(train_s / 60 if train_s else None, 1), str(best["images"]), _f(best["psnr"])])
+    note = ("Validation: whole 128x128 images of the run's held-out scenes at 4-128 spp (`images`: their "
+            "count; `pretrain_fast` validated on another, smaller set); minutes: optimisation time to the best step.")
+    return [caption(TRAIN_COMMAND, "model/weights/<preset>_log.jsonl, _train_config.json", None, note), "",
+            *_table(["checkpoint", "k, L", "best step", "steps run", "minutes to best", "images",
+                     "val PSNR dB"], rows)]
+
+
+def validation(results: Results) -> list[str]:
+    """The default model's best validation per spp next to the noisy input and OIDN."""
+    best = max((r for r in results.log("fast") if r["type"] == "val"), key=lambda r: r["psnr"])
+    rows = [[spp, *(_f(e["psnr"][w]) for w in ("ours", "noisy", "oidn")),
+             *(_f(e["relmse"][w], 4) for w in ("ours", "noisy", "oidn"))] for spp, e in best["per_spp"].items()]
+    note = f"`fast` at its best step ({best['step']}); PSNR dB tonemapped / relMSE; OIDN colour-only."
+    return [caption(TRAIN_COMMAND, "model/weights/fast_log.jsonl", None, note), "",
+            *_table(["spp", "ours PSNR", "noisy PSNR", "OIDN PSNR", "ours relMSE", "noisy relMSE",
+                     "OIDN relMSE"], rows, right=0)]
+
+
+def ablations(results: Results) -> list[str]:
+    """Each ablation run's final validation PSNR, overall and per spp."""
+    data = results.json("train_ablations")
+    spps = list(data["runs"][0]["final_per_spp"])
+    rows = [[r["name"], _f(r["final_step"]), _f(r["train_s"], 0), _f(r["final_psnr"]),
+             *(_f(r["final_per_spp"][s]["ours"]) for s in spps), _f(r.get("steps_to_target"))] for r in data["runs"]]
+    first = data["runs"][0]["final_per_spp"]
+    rows.append(["noisy / OIDN", "", "", "", *(f"{_f(first[s]['noisy'])} / {_f(first[s]['oidn'])}" for s in spps),
+                 ""])
+    note = (f"Same data and seed for every run; val PSNR dB; steps to target: first validation at >= "
+            f"{data['target_psnr']:.2f} dB.")
+    return [caption("python -m benchmarks.train_ablations --data data/train", "benchmarks/results/train_ablations.json",
+                    data, note), "",
+            *_table(["run", "steps", "train s", "val PSNR", *(f"{s} spp" for s in spps), "steps to target"], rows)]
+
+
+def train_throughput(results: Results) -> list[str]:
+    """Patches per second of every measured training-step variant of each preset."""
+    data = results.json("train_throughput")
+    names = list(next(iter(data["presets"].values()))["variants"])
+    rows = [[f"`{p}`", *(_f(v["variants"].get(n, {}).get("patches_per_s_median"), 1) for n in names)]
+            for p, v in data["presets"].items()]
+    s = data["settings"]
+    note = f"Patches/s ({s['patch']}x{s['patch']} patches, batch {s['batch']}), median of the rounds."
+    return [caption("python -m benchmarks.train_throughput", "benchmarks/results/train_throughput.json", data,
+                    note), "",
+            *_table(["preset", *names], rows)]
+
+
+# --- scale-out, robustness, memory -------------------------------------------------------------------
+
+def scaleout(results: Results) -> list[str]:
+    """Scenes/h with and without Dask workers, patches/s with 1 and 2 DDP ranks, and the estimate."""
+    data = results.json("scaleout")
+    rows = [[r["setting"], _f(r["scenes_per_hour"], 0), ""] for r in data["dask"]]
+    rows += [[r["setting"], "", _f(r["patches_per_s"], 1)] for r in data["ddp"]]
+    rows += [[f"estimate: {r['machines']} machine(s)", _f(r["scenes_per_hour"], 0), _f(r["patches_per_s"], 0)]
+             for r in data["estimate"]["rows"]]
+    note = (f"Dataset: 128-px scenes with a 4096-spp reference, {data['estimate']['per_scene_s']:.1f} s per scene on "
+            f"1 worker; training: `{data['train']['preset']}`, global batch {data['train']['batch']}. The estimate "
+            "rows scale these measured costs to N machines like this one (its assumptions are in the file).")
+    return [caption("python -m benchmarks.scaleout", "benchmarks/results/scaleout.json", data, note), "",
+            *_table(["setting", "scenes/h", "patches/s"], rows)]
+
+
+def extremes(results: Results) -> list[str]:
+    """Energy kept by the shipped model, converged renders through the default path, the 8K run."""
+    full = results.json("extremes")["full"]
+    rows = [[f"energy: {name}", f"{e['ratio']:.3f}", f"{e['ratio_at_mean_0.0001']:.3f}",
+             f"{e['ratio_at_mean_1000']:.3f}"] for name, e in full["energy"]["scenes"].items()]
+    rows += [[f"demo at {px} px, 4096 spp: PSNR noisy / network / default path",
+              f"{c['psnr_noisy_db']:.2f}", f"{c['psnr_denoised_db']:.2f}", f"{c['psnr_guarded_db']:.2f}"]
+             for px, c in full["converged"].items()]
+    m = full["memory"]
+    note = (f"Model `{full['model']}`. Energy: mean radiance denoised / noisy at the scene's own scale and "
+            f"scaled to mean 1e-4 and 1e3. Memory: a {m['width']}x{m['height']} image under --max-memory-mb "
+            f"{m['max_memory_mb']:g} peaked at {m['peak_rss_mb']:,.0f} MiB RSS ({m['over_base_mb']:,.0f} MiB over "
+            f"the process before the call), {m['tiles']} tiles, {m['seconds']:.0f} s.")
+    return [caption("python -m benchmarks.extremes", "benchmarks/results/extremes.json", full, note), "",
+            *_table(["case", "as rendered", "mean 1e-4", "mean 1e3"], rows)]
+
+
+def render_memory(results: Results) -> list[str]:
+    """Peak RSS of a render per film size, before the memory budget and under two budgets."""
+    data = results.json("render_memory")
+    rows = [[f"{s['res'][0]}x{s['res'][1]}", s["setting"], _f(s["peak_mb"], 0), _f(s["scratch_mb"], 0),
+             str(s["crops"]), _f(s["seconds"], 1)] for s in data["sizes"]]
+    note = (f"{data['scene']} at {data['spp']} spp in two halves; 'before': the render before --max-memory-mb "
+            f"({data['before_rev']}).")
+    return [caption("python -m benchmarks.render_memory", "benchmarks/results/render_memory.json", data, note), "",
+            *_table(["film", "setting", "peak MB", "render scratch MB", "crops", "s"], rows, right=2)]
+
+
+TABLES: dict[str, Callable[[Results], list[str]]] = {
+    f.__name__: f for f in (scoreboard, scoreboard_scenes, noise_guard, noise_guard_settings, inference, roofline, budget, presets,
+                            validation, ablations, train_throughput, scaleout, extremes, render_memory)}
+
+
+def pages(root: Path = ROOT) -> list[Path]:
+    """README.md and every docs page."""
+    return [root / "README.md", *sorted((root / "docs").glob("*.md"))]
+
+
+def render_page(text: str, results: Results, where: str = "page") -> str:
+    """``text`` with every marked table rendered anew; raises ValueError for an unknown table."""
+    def table(m: re.Match[str]) -> str:
+        name = m.group(2)
+        if name not in TABLES:
+            raise ValueError(f"{where}: unknown table {name!r} (known: {', '.join(TABLES)})")
+        return m.group(1) + "\n".join(TABLES[name](results)) + "\n" + m.group(4)
+
+    return MARKERS.sub(table, text)
+
+
+def stale_tables(root: Path = ROOT) -> list[str]:
+    """``PAGE: table NAME`` for every table that differs from what the result files give."""
+    results, stale = Results(root), []
+    for page in pages(root):
+        text = page.read_text()
+        fresh = render_page(text, results, str(page.relative_to(root)))
+        old, new = MARKERS.findall(text), MARKERS.findall(fresh)
+        stale += [f"{page.relative_to(root)}: table {a[1]}" for a, b in zip(old, new) if a != b]
+    return stale
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = OneLineParser(prog="python -m benchmarks.readme_tables", description=__doc__.split("\n")[0])
+    p.add_argument("--check", action="store_true", help="change nothing; exit 1 if a table is stale")
+    p.add_argument("--root", type=Path, default=ROOT, help="the checkout (default: this one)")
+    args = p.parse_args(sys.argv[1:] if argv is None else argv)
+    try:
+        if args.check:
+            stale = stale_tables(args.root)
+            for line in stale:
+                print(f"stale: {line}")
+            return 1 if stale else 0
+        results = Results(args.root)
+        for page in pages(args.root):
+            text = page.read_text()
+            fresh = render_page(text, results, str(page.relative_to(args.root)))
+            if fresh != text:
+                write_text_atomic(page, fresh)
+                print(f"rewrote tables in {page.relative_to(args.root)}")
+    except (OSError, ValueError, KeyError) as exc:
+        return p.fail(exc)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
