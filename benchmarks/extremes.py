@@ -34,16 +34,15 @@ from typing import Any
 import numpy as np
 
 
-from pipeline.denoise import DEFAULT_WEIGHTS, Denoiser
-
+from benchmarks.eval_scenes import eval_scenes
 from imaging.hashing import file_sha256
 from imaging.metrics import psnr
 from imaging.render import render
+from pipeline.denoise import DEFAULT_WEIGHTS, Denoiser
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results" / "extremes.json"
 DEMO = ROOT / "scenes" / "examples" / "demo.xml"
-EVAL = ROOT.parent / "shared" / "eval-scenes"
 EVAL_SCENES = ("cbox_spectral", "matpreview_plastic", "bitterli_veach_mis")
 EXPOSURES = (1e-4, 1e3)
 CONSTANTS = (0.01, 0.18, 1.0, 100.0)
@@ -53,7 +52,7 @@ PARTS = ("energy", "converged", "memory")
 def _scene(name: str, res: tuple[int, int]) -> tuple[Path, dict[str, str], tuple[int, int] | None]:
     if name == "demo":
         return DEMO, {}, res
-    return EVAL / name / "scene.xml", {"resx": str(res[0]), "resy": str(res[1])}, None
+    return eval_scenes([name])[0].folder / "scene.xml", {"resx": str(res[0]), "resy": str(res[1])}, None
 
 
 def energy(den: Denoiser, names: list[str], res: tuple[int, int]) -> dict[str, Any]:
@@ -170,7 +169,7 @@ def main() -> None:
     width, height = (int(v) for v in (args.size or ("960x540" if args.quick else "7680x4320")).split("x"))
     den = Denoiser(model, max_memory_mb=args.max_memory_mb)
     mode = "quick" if args.quick else "full"
-    names = ["demo"] + ([] if args.quick else [n for n in EVAL_SCENES if (EVAL / n).is_dir()])
+    names = ["demo"] + ([] if args.quick else [s.name for s in eval_scenes(EVAL_SCENES)])
     previous = json.loads(RESULTS.read_text()) if RESULTS.exists() else {}
     result = {k: v for k, v in previous.get(mode, {}).items() if k in PARTS}
     result.update({
