@@ -4,7 +4,9 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 from imaging.progress import tqdm_bars
 from imaging.render import DEFAULT_MAX_MEMORY_MB
@@ -33,6 +35,17 @@ def render_settings(args: argparse.Namespace) -> RenderSettings:
                           params=dict(args.param), max_memory_mb=args.max_memory_mb,
                           noise_guard=not args.no_noise_guard, reference=args.reference,
                           reference_spp=args.reference_spp)
+
+
+def _run_and_summarise(parser: OneLineParser, action: Callable[[], Any],
+                       summary: Callable[[Any], list[str]], outputs: str, quiet: bool) -> int:
+    """Run a command's library call (:meth:`OneLineParser.attempt`); unless ``quiet``, print the
+    summary of its result and where its outputs are. Returns the exit code."""
+    result, code = parser.attempt(action)
+    if code == 0 and not quiet:
+        print("\n".join(summary(result)))
+        print(f"outputs: {outputs}")
+    return code
 
 
 def render_parser() -> OneLineParser:
@@ -73,13 +86,8 @@ def main(argv: list[str] | None = None) -> int:
                     compare_oidn=False if args.no_compare else ("oidn" in args.compare or None),
                     time_budget=args.time_budget, curves=args.curves)
     log = (lambda s: None) if args.quiet else (lambda s: print(f"... {s}", file=sys.stderr))
-    metrics, code = parser.attempt(lambda: run(cfg, log))
-    if code:
-        return code
-    if not args.quiet:
-        print("\n".join(summary_lines(metrics)))
-        print(f"outputs: {cfg.out}/ (report.html, metrics.json, comparison.png)")
-    return 0
+    return _run_and_summarise(parser, lambda: run(cfg, log), summary_lines,
+                              f"{cfg.out}/ (report.html, metrics.json, comparison.png)", args.quiet)
 
 
 def denoise_parser() -> OneLineParser:
@@ -162,13 +170,8 @@ def tradeoff_main(argv: list[str] | None = None) -> int:
     cfg = TradeoffConfig(render=render_settings(args), out=args.out or f"{Path(args.scene).stem}-tradeoff",
                          spp=list(args.spp), models=list(models), compare_oidn="oidn" in args.compare,
                          repeat=args.repeat, metric=args.metric)
-    result, code = parser.attempt(lambda: run_tradeoff(cfg, tqdm_bars("step", enabled=not args.quiet)))
-    if code:
-        return code
-    if not args.quiet:
-        print("\n".join(saving_table(result)))
-        print(f"outputs: {cfg.out}/ (tradeoff.json, tradeoff.csv, tradeoff.png)")
-    return 0
+    return _run_and_summarise(parser, lambda: run_tradeoff(cfg, tqdm_bars("step", enabled=not args.quiet)),
+                              saving_table, f"{cfg.out}/ (tradeoff.json, tradeoff.csv, tradeoff.png)", args.quiet)
 
 
 if __name__ == "__main__":
