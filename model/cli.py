@@ -82,7 +82,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--lr-final", type=float, help="LR at the end of the cosine, as a share of --lr (0.01)")
     p.add_argument("--gradient-weight", type=float,
                    help="share of the gradient L1 in the loss (default 0.1, the paper's; 0 = plain L1)")
-    p.add_argument("--max-scenes", type=int, help="use only the dataset's scenes with index below this")
+    p.add_argument("--max-scenes", type=int, help="use only the datasets' scenes with index below this")
+    p.add_argument("--extra-data", action="append", metavar="DIR",
+                   help="another dataset folder to train and validate on (repeatable)")
     p.add_argument("--cpu-minutes", type=float,
                    help="stop once the optimisation used this many process CPU minutes (all sittings)")
     p.add_argument("--micro-batch", type=int,
@@ -127,6 +129,8 @@ def _model_config(base: Any, args: argparse.Namespace) -> ModelConfig:
 def config_from_args(args: argparse.Namespace) -> tuple[TrainConfig, bool]:
     """(TrainConfig, resume?) from parsed flags; raises :class:`ConfigError` on conflicts."""
     flags = {field: getattr(args, dest) for dest, field in _FLAGS.items() if getattr(args, dest) is not None}
+    if args.extra_data is not None:
+        flags["extra_data"] = tuple(args.extra_data)
     if args.cpu_minutes is not None:
         flags["cpu_budget_s"] = 60.0 * args.cpu_minutes
     if args.resume:

@@ -138,7 +138,8 @@ def _variance(root: Path, record: SceneRecord, spp: int) -> np.ndarray | None:
 
 def load_training_pairs(root: Path, records: Iterable[SceneRecord], transfer: TransferFunction,
                         aux: bool, progress: Callable[[int], Any] | None = None,
-                        converged: bool = False, noise: bool = False) -> list[TrainingPair]:
+                        converged: bool = False, noise: bool = False,
+                        index_offset: int = 0) -> list[TrainingPair]:
     """Every (scene, spp) of ``records`` as a transfer-space :class:`TrainingPair` held in RAM.
 
     With ``converged`` each scene also gets a pair whose input is its reference itself (``spp``
@@ -146,6 +147,7 @@ def load_training_pairs(root: Path, records: Iterable[SceneRecord], transfer: Tr
     it teaches the model to leave an already converged image as it is instead of smoothing it
     like a noisy one. With ``noise`` the input carries the 4 channels of
     :func:`model.noise_input.noise_channels` last (unknown where a level has no variance image).
+    A pair's ``scene`` is the record's index + ``index_offset`` (distinct ids across datasets).
     """
     pairs = []
     for record in records:
@@ -162,29 +164,31 @@ def load_training_pairs(root: Path, records: Iterable[SceneRecord], transfer: Tr
                 parts.append(_aux(root, record, spp))
             if noise:
                 parts.append(noise_channels(linear, _variance(root, record, spp), transfer))
-            pairs.append(TrainingPair(np.ascontiguousarray(np.concatenate(parts, axis=-1)), ref, record.index, spp))
+            pairs.append(TrainingPair(np.ascontiguousarray(np.concatenate(parts, axis=-1)), ref,
+                                      record.index + index_offset, spp))
         if converged and record.spp:
             parts = [ref]
             if aux:
                 parts.append(_aux(root, record, max(record.spp)))
             if noise:
                 parts.append(noise_channels(ref_linear, np.zeros_like(ref_linear), transfer))
-            pairs.append(TrainingPair(np.ascontiguousarray(np.concatenate(parts, axis=-1)), ref, record.index,
-                                      CONVERGED_SPP))
+            pairs.append(TrainingPair(np.ascontiguousarray(np.concatenate(parts, axis=-1)), ref,
+                                      record.index + index_offset, CONVERGED_SPP))
         if progress is not None:
             progress(1)
     return pairs
 
 
 def load_val_images(root: Path, records: Iterable[SceneRecord], aux: bool,
-                    noise: bool = False) -> list[ValImage]:
+                    noise: bool = False, index_offset: int = 0) -> list[ValImage]:
     """Every (scene, spp) of ``records`` as linear-radiance :class:`ValImage` held in RAM (with
-    its variance image where the dataset has one and ``noise`` asks for it)."""
+    its variance image where the dataset has one and ``noise`` asks for it); ``scene`` is the
+    record's index + ``index_offset``."""
     images = []
     for record in records:
         ref = _read_rgb(root, record.index, None, "hdr")
         for spp in record.spp:
-            images.append(ValImage(record.index, spp, _read_rgb(root, record.index, spp, "hdr"), ref,
+            images.append(ValImage(record.index + index_offset, spp, _read_rgb(root, record.index, spp, "hdr"), ref,
                                    _aux(root, record, spp) if aux else None,
                                    _variance(root, record, spp) if noise else None))
     return images

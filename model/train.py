@@ -28,7 +28,8 @@ from imaging.progress import ProgressBar, ProgressFactory
 from model.architectures import build_model
 from model.checkpoint import (Checkpoint, model_from_checkpoint, read_checkpoint, restore_optimizer,
                               restore_rng, save_checkpoint)
-from model.dataset import (load_training_pairs, load_val_images, read_dataset_config, read_manifest)
+from model.dataset import (ValImage, load_training_pairs, load_val_images, read_dataset_config,
+                           read_manifest)
 from model.grow import grow_model
 from model.noise_input import drop_noise
 from model.patches import TrainingPair, sample_batch
@@ -37,6 +38,8 @@ from model.step import NonFiniteGuard, train_step
 from model.train_config import RESUMABLE_OVERRIDES, TrainConfig
 from model.transfer import get_transfer
 from model.validate import Validator
+
+DATASET_ID_STRIDE = 1_000_000  # scene ids of the k-th dataset of a run are its indices + k * this
 
 # dataset.json fields a resumed run must see unchanged
 _DATA_KEYS = ("spp", "ref_spp", "filter", "aovs", "variance")
@@ -153,19 +156,8 @@ class _Run:
         self.log = RunLog(self.dir / "log.jsonl")
         self.last_path, self.best_path = self.dir / "last.ckpt", self.dir / "best.ckpt"
         ckpt = self._open(resume)
-        root = Path(config.data)
-        self.data_config = read_dataset_config(root)
-        _check_data_config(self.data_config, ckpt, config)
-        records = [r for r in read_manifest(root) if not config.max_scenes or r.index < config.max_scenes]
-        train_records = [r for r in records if r.split == "train"]
-        if not train_records:
-            raise DatasetError(f"{root}: manifest has no scenes in split 'train'")
-        model = config.model
-        self.pairs = load_training_pairs(root, train_records, get_transfer(model.transfer), model.aux_inputs,
-                                         converged=config.converged_pairs, noise=model.noise_input)
-        val_records = [r for r in records if r.split == "val"]
-        self.validator = Validator(load_val_images(root, val_records, model.aux_inputs, model.noise_input),
-                                   config.oidn) if val_records and config.val_every else None
+        self.data_config, self.pairs, val_images = self._load_data(ckpt)
+        self.validator = Validator(val_images, config.oidn) if val_images and config.val_every else None
         self.model, self.optimizer = self._build(ckpt)
         extra = ckpt.header.get("extra", {}) if ckpt else {}
         self.step = int(ckpt.header["step"]) if ckpt else 0
@@ -180,6 +172,33 @@ class _Run:
         self.saved_step: int | None = self.step if ckpt else None
         if ckpt:
             self.log.truncate_after(self.step)
+
+    def _load_data(self, ckpt: Checkpoint | None) -> tuple[dict[str, Any], list[TrainingPair], list[ValImage]]:
+        """The primary dataset's config (the extra datasets' configs under ``extra_data``), the
+        training pairs and validation images of every dataset (scene ids of the k-th dataset
+        offset by k * :data:`DATASET_ID_STRIDE`, so they stay distinct)."""
+        config, model = self.config, self.config.model
+        pairs: list[TrainingPair] = []
+        val_images: list[ValImage] = []
+        data_config: dict[str, Any] = {}
+        for k, folder in enumerate((config.data, *config.extra_data)):
+            root = Path(folder)
+            this = read_dataset_config(root)
+            _check_data_config(this, ckpt if k == 0 else None, config)
+            if k == 0:
+                data_config = dict(this)
+            else:
+                data_config.setdefault("extra_data", []).append({"path": folder, **this})
+            records = [r for r in read_manifest(root) if not config.max_scenes or r.index < config.max_scenes]
+            train_records = [r for r in records if r.split == "train"]
+            if not train_records:
+                raise DatasetError(f"{root}: manifest has no scenes in split 'train'")
+            pairs += load_training_pairs(root, train_records, get_transfer(model.transfer), model.aux_inputs,
+                                         converged=config.converged_pairs, noise=model.noise_input,
+                                         index_offset=k * DATASET_ID_STRIDE)
+            val_images += load_val_images(root, [r for r in records if r.split == "val"], model.aux_inputs,
+                                          model.noise_input, index_offset=k * DATASET_ID_STRIDE)
+        return data_config, pairs, val_images
 
     def _open(self, resume: bool) -> Checkpoint | None:
         if resume:

@@ -32,7 +32,7 @@ from model.step import learning_rate
 RESUMABLE_OVERRIDES = frozenset({
     "data", "steps", "log_every", "val_every", "ckpt_every", "max_bad_steps", "threads",
     "channels_last", "fused_adam", "prefetch", "compile", "oidn", "val_tile", "progress", "cpu_budget_s",
-    "max_scenes",  # more scenes of the same dataset (it grew): resuming on them is intended
+    "max_scenes", "extra_data",  # more scenes (a dataset grew, another joined): resuming on them is intended
 })
 
 
@@ -51,7 +51,9 @@ class TrainConfig:
     channels are zeroed (marked unknown), so that it also works on images without a variance.
     ``gradient_weight``: share of the gradient L1 in the loss (the paper's 0.1; 0: plain L1).
     ``max_scenes`` > 0: train and validate on the scenes with index below it only (the dataset
-    may hold more, e.g. while it is still being generated), so a run's data is fixed.
+    may hold more, e.g. while it is still being generated), so a run's data is fixed; it applies
+    to every dataset of the run. ``extra_data``: further dataset folders trained and validated
+    on beside ``data`` (e.g. a family rendered on its own); checked like ``data``.
     ``cpu_budget_s`` > 0: stop (validate and save) once the optimisation has used this many
     process CPU seconds over all sittings — runs of different cost compared at equal CPU time.
     ``converged_pairs``: besides each scene's noisy renders, train on (reference, reference) — a
@@ -73,6 +75,7 @@ class TrainConfig:
     noise_dropout: float = 0.25
     gradient_weight: float = 0.1
     max_scenes: int = 0
+    extra_data: tuple[str, ...] = ()
     cpu_budget_s: float = 0.0
     grad_clip: float | None = None
     init_from: str | None = None
@@ -94,6 +97,10 @@ class TrainConfig:
     progress: bool = True
 
     def __post_init__(self) -> None:
+        if isinstance(self.extra_data, (list, tuple)) and all(isinstance(d, str) and d for d in self.extra_data):
+            object.__setattr__(self, "extra_data", tuple(self.extra_data))
+        else:
+            raise ConfigError(f"extra_data must be a list of dataset folders, got {self.extra_data!r}")
         for name in ("steps", "batch", "lr_decay_every", "log_every", "ckpt_every", "max_bad_steps", "val_tile"):
             value = getattr(self, name)
             if not isinstance(value, int) or isinstance(value, bool) or value < 1:

@@ -225,3 +225,26 @@ def test_end_to_end_multiscale_with_noise_input(noisy_dataset: Path, tmp_path: P
     assert lrs[0] > lrs[1]  # cosine decay
     plain = write_synthetic_dataset(tmp_path / "plain", scenes=2, res=(64, 64), spp=(2,), val_scenes=())
     assert main(["--data", str(plain), "--out", str(tmp_path / "r2"), "--steps", "1", *flags]) == 1
+
+
+def test_extra_data_trains_and_validates_on_both_datasets(noisy_dataset: Path, tmp_path: Path) -> None:
+    """--extra-data: the pairs and validation images of both datasets, scene ids kept apart, the
+    extra dataset's config recorded in the checkpoint; resuming keeps it."""
+    other = write_synthetic_dataset(tmp_path / "other", scenes=2, res=(64, 64), spp=(4,), val_scenes=(0,),
+                                    variance=True, seed=5)
+    run = tmp_path / "run"
+    flags = ["--arch", "dense_unet", "--levels", "1", "--layers", "1", "--growth", "4", "--width", "8",
+             "--transfer", "pu", "--noise-input", "--patch", "32", "--batch", "2", "--log-every", "1",
+             "--val-every", "2", "--no-progress", "--no-oidn"]
+    assert main(["--data", str(noisy_dataset), "--extra-data", str(other), "--out", str(run), "--steps", "2",
+                 *flags]) == 0
+    vals = [r for r in _log(run) if r["type"] == "val"]
+    assert vals[-1]["images"] == 2 + 1  # scene 2 of the first (spp 2, 8), scene 0 of the other (spp 4)
+    meta = read_checkpoint(run / "last.ckpt").header
+    assert meta["train_config"]["extra_data"] == [str(other)]
+    assert meta["data_config"]["extra_data"][0]["path"] == str(other)
+    assert main(["--out", str(run), "--resume", "--steps", "3", "--no-progress"]) == 0
+    from model.train import DATASET_ID_STRIDE, _Run
+    from model.train_config import TrainConfig
+    pairs = _Run(TrainConfig.from_dict({**meta["train_config"], "out": str(tmp_path / "r3")}), False).pairs
+    assert {p.scene for p in pairs} == {0, 1, DATASET_ID_STRIDE + 1}
