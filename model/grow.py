@@ -7,6 +7,8 @@ weights on the ``(L'-L)*k`` new channels to zero. The new layers keep their He i
 from the first step (the tail weights on their outputs receive gradient), while the grown model in
 eval mode computes exactly the source's output — training starts from the source's quality instead
 of from the identity. The residual model's zero-initialised last conv works the same way.
+A checkpoint of the very same model config (e.g. a multi-scale net) is copied as it is: a new run
+(fresh optimiser, schedule and step count) that starts from trained weights.
 """
 from __future__ import annotations
 
@@ -14,7 +16,6 @@ import torch
 
 from imaging.errors import ConfigError
 from model.config import ModelConfig
-from model.network import FlatDenseNet
 
 _SAME = ("arch", "growth", "init_features", "bottleneck", "transfer", "output", "aux_inputs")
 
@@ -32,12 +33,16 @@ def check_growable(source: ModelConfig, target: ModelConfig) -> None:
 
 
 @torch.no_grad()
-def grow_model(target: FlatDenseNet, source: FlatDenseNet) -> None:
+def grow_model(target: torch.nn.Module, source: torch.nn.Module) -> None:
     """Overwrite ``target``'s head, first layers and tail with ``source``'s (see module docstring).
 
     ``target``'s extra layers keep their current (He) init. Raises :class:`ConfigError` if the
     configs are not growable. Afterwards ``target.eval()(x) == source.eval()(x)`` up to rounding.
+    A source with the very same config (any architecture) is copied whole: a warm start.
     """
+    if source.config == target.config:
+        target.load_state_dict(source.state_dict(), strict=True)
+        return
     check_growable(source.config, target.config)
     src_layers = len(source.body.layers)
     copied = ("head.", *(f"body.layers.{i}." for i in range(src_layers)))

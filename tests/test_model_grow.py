@@ -99,3 +99,18 @@ def test_train_init_from_an_incompatible_checkpoint_is_one_line(tmp_path: Path,
                "--init-from", str(source), "--steps", "1", "--no-progress"])
     err = capsys.readouterr().err
     assert rc == 1 and len(err.strip().splitlines()) == 1 and "cannot grow" in err and str(source) in err
+
+
+def test_same_config_is_a_warm_start_for_any_architecture() -> None:
+    import dataclasses
+
+    from tests.test_model_unet import TINY, trained_like
+
+    source = trained_like(dataclasses.replace(TINY, noise_input=True))
+    target = build_model(source.config)
+    grow_model(target, source)
+    x = torch.rand(1, source.config.image_channels, 20, 24)
+    with torch.no_grad():
+        assert torch.equal(target.eval()(x), source(x))
+    with pytest.raises(ConfigError, match="only densenet"):
+        grow_model(build_model(dataclasses.replace(source.config, layers=2)), source)
