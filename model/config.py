@@ -46,7 +46,9 @@ class ModelConfig:
     ``aux_inputs``: also feed albedo (RGB, [0,1]) and normal (XYZ, [-1,1]) -> 15 input channels.
     ``noise_input``: also feed what a render made of two halves tells about its noise
     (:mod:`model.noise_input`: per RGB channel how far one standard deviation of the mean moves the
-    pixel in transfer space, and a flag that is 1 where the variance is known) -> 4 more channels.
+    pixel in transfer space, and a flag that is 1 where the variance is known) -> 4 more channels;
+    ``noise_radius``: the variance is first averaged over a (2r+1)^2 window (a two-halves estimate
+    has one degree of freedom per pixel; the window gives the network a local noise level).
     ``levels``: for the multi-scale archs (``dense_unet``, ``plain_unet``, :mod:`model.unet`) the
     number of resolutions below the half-resolution stem (the image is processed at 1/2 .. 1/2^(levels+1));
     0 for the flat archs. For the multi-scale archs ``layers`` counts the layers of each of the
@@ -66,6 +68,7 @@ class ModelConfig:
     aux_inputs: bool = False
     levels: int = 0
     noise_input: bool = False
+    noise_radius: int = 0
 
     def __post_init__(self) -> None:
         if self.arch not in ARCHS:
@@ -81,6 +84,9 @@ class ModelConfig:
         for name in ("aux_inputs", "noise_input"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"model {name} must be true or false, got {getattr(self, name)!r}")
+        if not isinstance(self.noise_radius, int) or isinstance(self.noise_radius, bool) \
+                or not 0 <= self.noise_radius <= 8:
+            raise ConfigError(f"model noise_radius must be an integer in 0..8, got {self.noise_radius!r}")
         if not isinstance(self.levels, int) or isinstance(self.levels, bool):
             raise ConfigError(f"model levels must be an integer, got {self.levels!r}")
         if self.arch in UNET_ARCHS and not 1 <= self.levels <= MAX_LEVELS:
@@ -138,11 +144,11 @@ PRESETS: dict[str, ModelConfig] = {
     "paper": ModelConfig(layers=20, growth=12, init_features=24, transfer="pu"),
     # the multi-scale family (model.unet): 2 dense layers per block, 5 resolutions (1/2 .. 1/32)
     "u-fast": ModelConfig(arch="dense_unet", levels=4, layers=2, growth=8, init_features=24, transfer="pu",
-                          noise_input=True),
+                          noise_input=True, noise_radius=2),
     "u-balanced": ModelConfig(arch="dense_unet", levels=4, layers=2, growth=12, init_features=32, transfer="pu",
-                              noise_input=True),
+                              noise_input=True, noise_radius=2),
     "u-high": ModelConfig(arch="dense_unet", levels=4, layers=3, growth=16, init_features=48, transfer="pu",
-                          noise_input=True),
+                          noise_input=True, noise_radius=2),
 }
 
 

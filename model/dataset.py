@@ -139,14 +139,15 @@ def _variance(root: Path, record: SceneRecord, spp: int) -> np.ndarray | None:
 def load_training_pairs(root: Path, records: Iterable[SceneRecord], transfer: TransferFunction,
                         aux: bool, progress: Callable[[int], Any] | None = None,
                         converged: bool = False, noise: bool = False,
-                        index_offset: int = 0) -> list[TrainingPair]:
+                        index_offset: int = 0, noise_radius: int = 0) -> list[TrainingPair]:
     """Every (scene, spp) of ``records`` as a transfer-space :class:`TrainingPair` held in RAM.
 
     With ``converged`` each scene also gets a pair whose input is its reference itself (``spp``
     = :data:`CONVERGED_SPP`; aux buffers of its highest spp; noise channels saying "variance 0"):
     it teaches the model to leave an already converged image as it is instead of smoothing it
     like a noisy one. With ``noise`` the input carries the 4 channels of
-    :func:`model.noise_input.noise_channels` last (unknown where a level has no variance image).
+    :func:`model.noise_input.noise_channels` last (unknown where a level has no variance image;
+    the variance averaged over ``noise_radius``).
     A pair's ``scene`` is the record's index + ``index_offset`` (distinct ids across datasets).
     """
     pairs = []
@@ -163,7 +164,7 @@ def load_training_pairs(root: Path, records: Iterable[SceneRecord], transfer: Tr
             if aux:
                 parts.append(_aux(root, record, spp))
             if noise:
-                parts.append(noise_channels(linear, _variance(root, record, spp), transfer))
+                parts.append(noise_channels(linear, _variance(root, record, spp), transfer, noise_radius))
             pairs.append(TrainingPair(np.ascontiguousarray(np.concatenate(parts, axis=-1)), ref,
                                       record.index + index_offset, spp))
         if converged and record.spp:
@@ -171,7 +172,7 @@ def load_training_pairs(root: Path, records: Iterable[SceneRecord], transfer: Tr
             if aux:
                 parts.append(_aux(root, record, max(record.spp)))
             if noise:
-                parts.append(noise_channels(ref_linear, np.zeros_like(ref_linear), transfer))
+                parts.append(noise_channels(ref_linear, np.zeros_like(ref_linear), transfer, noise_radius))
             pairs.append(TrainingPair(np.ascontiguousarray(np.concatenate(parts, axis=-1)), ref,
                                       record.index + index_offset, CONVERGED_SPP))
         if progress is not None:

@@ -12,6 +12,8 @@ A checkpoint of the very same model config (e.g. a multi-scale net) is copied as
 """
 from __future__ import annotations
 
+import dataclasses
+
 import torch
 
 from imaging.errors import ConfigError
@@ -38,9 +40,10 @@ def grow_model(target: torch.nn.Module, source: torch.nn.Module) -> None:
 
     ``target``'s extra layers keep their current (He) init. Raises :class:`ConfigError` if the
     configs are not growable. Afterwards ``target.eval()(x) == source.eval()(x)`` up to rounding.
-    A source with the very same config (any architecture) is copied whole: a warm start.
+    A source with the very same config (any architecture; the noise input's averaging window may
+    differ, the weights do not depend on it) is copied whole: a warm start.
     """
-    if source.config == target.config:
+    if dataclasses.replace(source.config, noise_radius=target.config.noise_radius) == target.config:
         target.load_state_dict(source.state_dict(), strict=True)
         return
     check_growable(source.config, target.config)

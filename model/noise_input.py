@@ -12,25 +12,40 @@ channel is 1 where the variance is known and 0 where it is not (a single EXR wit
 1-spp render): then the three noise channels are 0 as well, and the model falls back to RGB alone
 (it is trained with the noise channels dropped on a share of its patches, ``TrainConfig.noise_dropout``).
 
+Per-pixel estimates from two halves have one degree of freedom each; with ``ModelConfig.noise_radius``
+the variance is averaged over a small window first, which gives a local noise level instead.
+
 Layout: HxWx4 float32 (noise R, G, B, known flag), or Nx4xHxW for tensors.
 """
 from __future__ import annotations
 
 import numpy as np
 import torch
+from torch.nn import functional as F
 
 from model.transfer import HDR_MAX, TransferFunction
 
 
-def noise_channels(color: np.ndarray, variance: np.ndarray | None, transfer: TransferFunction) -> np.ndarray:
+def noise_channels(color: np.ndarray, variance: np.ndarray | None, transfer: TransferFunction,
+                   radius: int = 0) -> np.ndarray:
     """HxWx4 float32 noise channels of HxWx3 sanitised radiance ``color`` (finite, >= 0) and its
-    HxWx3 variance estimate (NaN -> 0, +Inf -> the largest radiance; None: unknown -> all 0)."""
+    HxWx3 variance estimate (NaN -> 0, +Inf -> the largest radiance; None: unknown -> all 0).
+
+    ``radius`` > 0: the variance is averaged over a (2r+1)^2 window first (cut at the borders),
+    so a pixel's channel tells the local noise level rather than its own one-degree-of-freedom
+    estimate (an output pixel then depends on inputs up to ``radius`` pixels further away).
+    """
     h, w = color.shape[:2]
     out = np.zeros((h, w, 4), np.float32)
     if variance is None:
         return out
-    var = np.nan_to_num(np.asarray(variance, np.float32), nan=0.0, posinf=HDR_MAX * HDR_MAX, neginf=0.0)
-    sigma = np.sqrt(np.clip(var, 0.0, HDR_MAX * HDR_MAX))
+    var = np.clip(np.nan_to_num(np.asarray(variance, np.float32), nan=0.0, posinf=HDR_MAX * HDR_MAX,
+                                neginf=0.0), 0.0, HDR_MAX * HDR_MAX)
+    if radius > 0:
+        planes = torch.from_numpy(np.ascontiguousarray(var.transpose(2, 0, 1), np.float64))[None]
+        var = F.avg_pool2d(planes, 2 * radius + 1, stride=1, padding=radius,
+                           count_include_pad=False)[0].permute(1, 2, 0).numpy()
+    sigma = np.sqrt(var).astype(np.float32)
     x = torch.from_numpy(np.ascontiguousarray(color, np.float32))
     upper = torch.from_numpy(np.minimum(np.asarray(color, np.float32) + sigma, HDR_MAX))
     out[..., :3] = (transfer.forward(upper) - transfer.forward(x)).clamp(min=0.0).numpy()

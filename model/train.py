@@ -195,7 +195,7 @@ class _Run:
                 raise DatasetError(f"{root}: manifest has no scenes in split 'train'")
             pairs += load_training_pairs(root, train_records, get_transfer(model.transfer), model.aux_inputs,
                                          converged=config.converged_pairs, noise=model.noise_input,
-                                         index_offset=k * DATASET_ID_STRIDE)
+                                         index_offset=k * DATASET_ID_STRIDE, noise_radius=model.noise_radius)
             val_images += load_val_images(root, [r for r in records if r.split == "val"], model.aux_inputs,
                                           model.noise_input, index_offset=k * DATASET_ID_STRIDE)
         return data_config, pairs, val_images

@@ -47,3 +47,17 @@ def test_drop_noise_hides_a_share_of_patches() -> None:
     assert 70 < dropped.sum() < 130
     assert np.all(batch[:, :, :, :3] == 1)  # the image itself is untouched
     assert np.all(batch[~dropped] == 1)
+
+
+def test_radius_averages_the_variance_over_the_window() -> None:
+    color = np.zeros((5, 6, 3), np.float32)
+    variance = np.zeros_like(color)
+    variance[2, 3] = 9.0  # one pixel's estimate; the 3x3 window mean around it is 1
+    raw = noise_channels(color, variance, PU)
+    smooth = noise_channels(color, variance, PU, radius=1)
+    one = float(PU.forward(torch.tensor(1.0)))
+    assert raw[2, 3, 0] == pytest.approx(float(PU.forward(torch.tensor(3.0))), rel=1e-5)
+    np.testing.assert_allclose(smooth[1:4, 2:5, 0], one, rtol=1e-5)  # every pixel whose window holds it
+    assert smooth[0, 0, 0] == 0 and smooth[4, 5, 0] == 0  # outside every window: no noise
+    corner = noise_channels(color, np.full_like(color, 4.0), PU, radius=2)
+    np.testing.assert_allclose(corner[..., 0], float(PU.forward(torch.tensor(2.0))), rtol=1e-5)  # cut windows
