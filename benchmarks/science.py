@@ -7,7 +7,9 @@ scenes. The designs:
 
 * ``flat_paper``  — Kim & Lee's flat DenseNet (k=12, L=20), 32-px patches, batch 64
 * ``flat_fast``   — today's flat ``fast`` (k=8, L=10), 32-px patches, batch 64
-* ``unet_noise``  — the multi-scale dense network ``u-balanced`` with the noise input, 128-px patches
+* ``unet_noise``  — the multi-scale dense network ``u-balanced`` with the noise input (the variance
+  averaged over 5x5 pixels), 128-px patches
+* ``unet_noise_px`` — the same with each pixel's own variance estimate (``--noise-radius 0``)
 * ``unet_rgb``    — the same without the noise input
 * ``plain_noise`` — a plain (non-dense) U-Net of equal MACs per pixel, with the noise input
 * ``unet_noise_l1`` — ``unet_noise`` trained with plain L1 instead of L1 + gradient L1
@@ -30,6 +32,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 RESULTS = Path(__file__).resolve().parent / "results"
 UNET = ["--preset", "u-balanced", "--patch", "128", "--batch", "8", "--lr", "1e-3", "--lr-warmup", "100"]
 FLAT = ["--patch", "32", "--batch", "64", "--lr", "1e-3"]
@@ -37,6 +41,7 @@ RUNS: dict[str, list[str]] = {
     "flat_paper": ["--preset", "paper", *FLAT, "--val-every", "40"],
     "flat_fast": ["--preset", "fast", *FLAT, "--val-every", "150"],
     "unet_noise": [*UNET, "--val-every", "100"],
+    "unet_noise_px": [*UNET, "--noise-radius", "0", "--val-every", "100"],
     "unet_rgb": [*UNET, "--no-noise-input", "--val-every", "100"],
     "plain_noise": [*UNET, "--arch", "plain_unet", "--val-every", "100"],
     "unet_noise_l1": [*UNET, "--gradient-weight", "0", "--val-every", "100"],
@@ -67,9 +72,15 @@ def _curve(run: Path) -> list[dict[str, Any]]:
 
 
 def _at(curve: list[dict[str, Any]], minutes: float) -> dict[str, Any] | None:
-    """The last validation at or before ``minutes`` CPU minutes."""
-    before = [c for c in curve if c["cpu_min"] <= minutes + 1e-9]
-    return before[-1] if before else None
+    """Validation at ``minutes`` CPU minutes: the mean of the validations made in the last quarter
+    before it, ``(0.75 * minutes, minutes]`` (at a constant LR one validation scatters by ~1-2 dB
+    from the next), with the step of the last of them; None when there is none."""
+    window = [c for c in curve if 0.75 * minutes < c["cpu_min"] <= minutes + 1e-9]
+    if not window:
+        return None
+    mean = lambda key: float(np.mean([c[key] for c in window]))  # noqa: E731
+    per_spp = {s: float(np.mean([c["per_spp"][s] for c in window])) for s in window[-1]["per_spp"]}
+    return {**window[-1], "psnr": mean("psnr"), "per_spp": per_spp, "validations": len(window)}
 
 
 def hidden_noise_psnr(run: Path) -> dict[str, Any]:
@@ -94,7 +105,8 @@ def hidden_noise_psnr(run: Path) -> dict[str, Any]:
 
 def report(runs: Path) -> dict[str, Any]:
     """Read every run under ``runs``; write science.json/.md/.png; return the results."""
-    results: dict[str, Any] = {"date": time.strftime("%Y-%m-%d %H:%M"), "runs": {}}
+    results: dict[str, Any] = {"command": "python -m benchmarks.science report", "runs": {},
+                               "date": time.strftime("%Y-%m-%d %H:%M")}
     for name in RUNS:
         if not (runs / name / "log.jsonl").exists():
             continue
@@ -117,8 +129,9 @@ def table(results: dict[str, Any]) -> list[str]:
         return ["no runs"]
     budget = min(r["budget_min"] for r in runs.values())
     marks = [budget / 4, budget / 2, budget]
-    lines = [f"Validation PSNR (dB, tonemapped; mean over the val images) at equal CPU minutes of optimisation; "
-             f"noisy input and OIDN colour-only on the same images. ({results['date']})", "",
+    lines = [f"Validation PSNR (dB, tonemapped; mean over the val images) at equal CPU minutes of optimisation, "
+             f"each the mean of the validations in the last quarter before that time; noisy input and OIDN "
+             f"colour-only on the same images. ({results['date']})", "",
              "| run | arch | noise input | loss | steps | " + " | ".join(f"{m:.0f} min" for m in marks) + " | "
              + " | ".join(f"{s} spp" for s in SPP_COLUMNS) + " |",
              "|---|---|---|---|---:|" + "---:|" * (len(marks) + len(SPP_COLUMNS))]

@@ -37,8 +37,8 @@ _FLAGS = {  # argparse dest -> TrainConfig field
     "lr_warmup": "lr_warmup", "lr_cosine_steps": "lr_cosine_steps", "lr_final": "lr_final",
     "noise_dropout": "noise_dropout", "gradient_weight": "gradient_weight", "max_scenes": "max_scenes",
 }
-_MODEL_FLAGS = ("arch", "transfer", "output", "aux_inputs", "noise_input", "levels", "layers", "growth",
-                "init_features")
+_MODEL_FLAGS = ("arch", "transfer", "output", "aux_inputs", "noise_input", "noise_radius", "levels", "layers",
+                "growth", "init_features")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -61,6 +61,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="also feed the render's noise (needs a dataset made with --variance)")
     p.add_argument("--no-noise-input", dest="noise_input", action="store_const", const=False,
                    help="do not feed the render's noise (overrides the preset)")
+    p.add_argument("--noise-radius", type=int,
+                   help="average the variance over a (2r+1)^2 window before the network (the u- presets: 2)")
     p.add_argument("--noise-dropout", type=float,
                    help="share of patches whose noise channels are hidden (default 0.25)")
     p.add_argument("--transfer", choices=["log", "pu"])
