@@ -169,8 +169,9 @@ def main() -> None:
             "sizes": {},
         }
         for w, h in sizes:
-            results["sizes"][f"{w}x{h}"] = measure_size(w, h, models, repeat)
-            print(f"... {w}x{h} done", file=sys.stderr)
+            row = results["sizes"][f"{w}x{h}"] = measure_size(w, h, models, repeat)
+            print(f"... {w}x{h}: " + ", ".join(f"{k} {v['s_per_mp']:.2f} s/MP" for k, v in row.items()),
+                  file=sys.stderr, flush=True)
         w, h = sizes[0]
         results["stages_ms"] = {f"{w}x{h}": {n: stages(m, w, h, repeat) for n, m in models.items()}}
     results["machine"]["loadavg_after"] = os.getloadavg()

@@ -177,13 +177,52 @@ def noise_guard(results: Results) -> list[str]:
 # --- speed -----------------------------------------------------------------------------------------
 
 def inference(results: Results) -> list[str]:
-    """Seconds per megapixel of the whole chain for every measured variant, per image size."""
+    """Seconds per megapixel of the whole chain for every measured model and OIDN, per image size,
+    and each model's time as a multiple of OIDN's in the same run."""
     data = results.json("inference")
     names = [k for k, v in next(iter(data["sizes"].values())).items() if isinstance(v, dict) and "s_per_mp" in v]
-    rows = [[size, *(_f(data["sizes"][size].get(n, {}).get("s_per_mp")) for n in names)] for size in data["sizes"]]
-    note = "Seconds per megapixel, median of the runs; OIDN 2.5 colour-only on the same image in the same run."
+    models = [n for n in names if n != "oidn"]
+    rows = []
+    for size, row in data["sizes"].items():
+        oidn = row.get("oidn", {}).get("s_per_mp")
+        ratios = [_f(row[n]["s_per_mp"] / oidn) + "x" if oidn and n in row else "-" for n in models]
+        rows.append([size, *(_f(row.get(n, {}).get("s_per_mp")) for n in names), *ratios])
+    macs = data.get("macs_per_pixel", {})
+    note = ("Seconds per megapixel of one call, median of the runs; OIDN 2.5 colour-only on the same image in "
+            "the same run; the last columns: each model's time over OIDN's."
+            + (" MACs per pixel: " + ", ".join(f"{n} {macs[n] / 1e3:.1f}k" for n in models if n in macs) + "."
+               if macs else ""))
     return [caption("python -m benchmarks.inference", "benchmarks/results/inference.json", data, note), "",
-            *_table(["size", *names], rows)]
+            *_table(["size", *names, *(f"{n}/OIDN" for n in models)], rows)]
+
+
+def multiscale_presets(results: Results) -> list[str]:
+    """The multi-scale presets' sizes, counted from the code (no measurement)."""
+    from model.architectures import build_model, count_parameters, receptive_radius
+    from model.config import PRESETS
+    from model.unet import macs_per_pixel
+
+    rows = []
+    for name, c in PRESETS.items():
+        if c.multiscale:
+            rows.append([f"`{name}`", str(c.levels + 1), str(c.layers), str(c.growth), str(c.init_features),
+                         f"{macs_per_pixel(c) / 1e3:.1f}k", f"{count_parameters(build_model(c)):,}",
+                         f"{receptive_radius(c)} px"])
+    return ["Counted from `model/config.py` by `model.unet.macs_per_pixel` (checked by a test against the "
+            "convolutions run) and `model.architectures.receptive_radius` (with the noise input's window).", "",
+            *_table(["preset", "resolutions", "layers a block", "k", "w0", "MACs/pixel (folded)", "parameters",
+                     "receptive radius"], rows)]
+
+
+def science(results: Results) -> list[str]:
+    """Designs trained for equal CPU time on the same data (benchmarks/science.py)."""
+    from benchmarks.science import table
+
+    data = results.json("science")
+    lines = table(data)
+    return [caption("python -m benchmarks.science report", "benchmarks/results/science.json", data,
+                    "Every run from scratch on the same scenes and seed until its optimisation used the same "
+                    "process CPU time (`train --cpu-minutes`)."), "", *lines[2:]]
 
 
 def roofline(results: Results) -> list[str]:
@@ -320,8 +359,9 @@ def render_memory(results: Results) -> list[str]:
 
 
 TABLES: dict[str, Callable[[Results], list[str]]] = {
-    f.__name__: f for f in (scoreboard, scoreboard_scenes, noise_guard, noise_guard_settings, inference, roofline, budget, presets,
-                            validation, ablations, train_throughput, scaleout, extremes, render_memory)}
+    f.__name__: f for f in (scoreboard, scoreboard_scenes, noise_guard, noise_guard_settings, inference, science, multiscale_presets,
+                            roofline, budget, presets, validation, ablations, train_throughput, scaleout, extremes,
+                            render_memory)}
 
 
 def pages(root: Path = ROOT) -> list[Path]:

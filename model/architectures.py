@@ -22,8 +22,10 @@ def build_model(config: ModelConfig) -> nn.Module:
 
 def receptive_radius(config: ModelConfig) -> int:
     """Pixels on each side an output pixel may depend on (an upper bound for the multi-scale
-    nets; for the flat ones exact: gradient 1 + 7x7 conv 3 + L + tail 1)."""
-    return unet.receptive_radius(config) if config.multiscale else 1 + 3 + config.layers + 1
+    nets; for the flat ones exact: gradient 1 + 7x7 conv 3 + L + tail 1), plus the window the
+    noise input averages the variance over."""
+    reach = unet.receptive_radius(config) if config.multiscale else 1 + 3 + config.layers + 1
+    return reach + (config.noise_radius if config.noise_input else 0)
 
 
 def alignment(config: ModelConfig) -> int:

@@ -149,7 +149,7 @@ def denoise_image(model: nn.Module, color: np.ndarray, aux: np.ndarray | None = 
         if config.noise_input:
             var = None if variance is None else \
                 np.asarray(variance[t.wy0:t.wy1, t.wx0:t.wx1], np.float32) * np.float32(scale * scale)
-            parts.append(torch.from_numpy(noise_channels(rgb, var, transfer)))
+            parts.append(torch.from_numpy(noise_channels(rgb, var, transfer, config.noise_radius)))
         x = torch.cat(parts, dim=2)
         y = model(x.permute(2, 0, 1).contiguous()[None])[0]
         result = transfer.inverse(torch.nan_to_num(y, nan=0.0).clamp(0.0, 1.0)).permute(1, 2, 0).numpy()
