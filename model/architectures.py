@@ -42,3 +42,58 @@ def prepare_for_inference(model: nn.Module) -> nn.Module:
 def count_parameters(model: nn.Module) -> int:
     """Number of trainable parameters."""
     return sum(p.numel() for p in model.parameters() if p.requires_grad)
+
+
+# Resident bytes of a forward pass per byte of the tensors live_channels_per_pixel counts: oneDNN's
+# reordered weights and workspaces, the allocator's slack (with imaging/allocator.py's fixed mmap
+# threshold), and for the training modules their BatchNorm copies and concatenations. A bound of
+# what benchmarks/denoise_memory.py --parts calibrate measures (results/denoise_memory.json).
+FOLDED_ALLOWANCE = 1.1
+MODULE_ALLOWANCE = 1.6
+
+
+def inference_bytes_per_pixel(config: ModelConfig, folded: bool = True) -> float:
+    """Peak resident bytes per input pixel of one forward pass of a tile, beyond a fixed cost
+    (:data:`model.infer.TILE_FIXED_BYTES`): the folded network's live float32 tensors
+    (:func:`live_channels_per_pixel`) times the measured allowance of the folded network
+    (``folded``) or of the training module."""
+    return 4.0 * live_channels_per_pixel(config) * (FOLDED_ALLOWANCE if folded else MODULE_ALLOWANCE)
+
+
+def live_channels_per_pixel(config: ModelConfig) -> float:
+    """float32 channels per input pixel alive at the peak of one forward pass of the folded
+    network (:func:`prepare_for_inference`), counted from its code: the input, the buffers a
+    level keeps and the largest set of temporaries beside them (a layer's clamped input and
+    bottleneck, a transition, the tail). Lower resolutions count their share of the pixels."""
+    if config.multiscale:
+        return _unet_live_channels(config)
+    cimg, k, mid = config.image_channels, config.growth, config.bottleneck * config.growth
+    inputs = cimg + 2 * config.in_channels + 12  # network_input's copies and gradient temporaries
+    if config.arch == "densenet":
+        c0 = config.init_features
+        width = c0 + config.layers * k
+        return max(inputs + c0, cimg + c0 + width + max(width - k + mid, mid + k, width + 6))
+    from model.network import plain_width
+
+    width = plain_width(config)
+    return max(inputs + width, cimg + 3 * width + mid, cimg + 3 * width + 6)
+
+
+def _unet_live_channels(config: ModelConfig) -> float:
+    """:func:`live_channels_per_pixel` of the folded multi-scale nets (:mod:`model.inference_unet`)."""
+    plan = unet._Widths(config, 1.0 if config.arch == "dense_unet" else unet.plain_width_scale(config))
+    n, layers, cimg = config.levels, config.layers, config.image_channels
+    share = [0.25 ** (i + 1) for i in range(n + 1)]
+    inputs = cimg + 3 * config.in_channels + 12  # network_input, its padded copy, the unshuffled input
+    base = cimg + config.in_channels  # the input and the unshuffled input, kept to the end
+    if config.arch == "dense_unet":
+        enc = [plan.width[i] + layers * plan.growth[i] for i in range(n + 1)]  # enc[n]: the bottom block
+        kept = [enc[i] + plan.width[i] + layers * plan.growth[i] for i in range(n)] + [enc[n]]
+        busy = [kept[i] - plan.growth[i] + plan.mid[i] for i in range(n + 1)]  # a layer's clamp + bottleneck
+    else:
+        kept = plan.width[:n] + [plan.width[n]]  # the encoder outputs kept for the skips, the bottom
+        busy = [2 * plan.width[i] * 3 + plan.mid[i] for i in range(n + 1)]  # upsampled, concatenated, x, clamp
+    buffers = sum(c * s for c, s in zip(kept, share))
+    temporaries = max(max(b * s for b, s in zip(busy, share)),
+                      (kept[0] + 24) * share[0] + 6)  # the tail: BN-ReLU copy, two 12-channel convs, output
+    return max(inputs, base + buffers + temporaries)

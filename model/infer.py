@@ -6,7 +6,9 @@ by a power of two towards the training median, undone at the end) -> sanitise (N
 that takes them) -> network on core tiles with a margin of the receptive-field radius, on the
 network's alignment grid (exact: :mod:`imaging.tiling`) -> clamp to [0, 1] in transfer space
 (radiance 0..HDR_MAX, so a wild output cannot overflow to Inf) -> inverse transfer -> undo the
-exposure. All of it tile by tile: no whole-image temporaries besides the output.
+exposure. All of it tile by tile: no whole-image temporaries besides the output. The caller sizes
+the tiles (:func:`tile_bytes_per_pixel` per window pixel); the passes over the whole image
+(exposure, the skip test below) work in blocks within ``max_bytes``.
 
 With a variance and ``skip_below``, the parts of the image whose noise is already below that
 level (transfer-space standard deviation, per 64-px cell) are not run through the network: they
@@ -24,12 +26,21 @@ import torch
 from torch import nn
 
 from imaging.tiling import Tile, run_windows
-from model.architectures import alignment, receptive_radius
+from model.architectures import alignment, inference_bytes_per_pixel, receptive_radius
 from model.config import ModelConfig
 from model.noise_input import noise_channels
 from model.transfer import HDR_MAX, TransferFunction, get_transfer
 
 SKIP_CELL = 64  # pixels per side of the cells the skip test looks at (a multiple of every alignment <= 64)
+# Scratch of the passes over the whole image (log-average luminance, the skip test, sanitising)
+# per pixel of a block, a bound of what benchmarks/denoise_memory.py measures; and their default
+# bound when the caller gives none.
+PASS_BYTES_PER_PIXEL = 320
+DEFAULT_PASS_BYTES = 64 * 2**20
+# One tile's fixed cost beside its pixels: the first forward pass's oneDNN kernels and reordered
+# weights, the allocator's small blocks (benchmarks/denoise_memory.py --parts calibrate).
+TILE_FIXED_BYTES = 32 * 2**20
+Aux = np.ndarray | tuple[np.ndarray, np.ndarray] | None
 
 
 # Log-average luminance (geometric mean over pixels with luminance > 0; a firefly barely moves it)
@@ -51,12 +62,13 @@ def log_average_luminance(color: np.ndarray, rows: int = 256) -> float:
     return math.exp(total / count) if count else 0.0
 
 
-def exposure_scale(color: np.ndarray) -> float:
+def exposure_scale(color: np.ndarray, rows: int = 256) -> float:
     """Power of two to multiply HxWx3 radiance by before the network, and divide its output by:
     1.0 when the log-average luminance lies inside ``EXPOSURE_BAND`` (or the image is black).
     A power of two scales without rounding; a very bright image (mean 1e3, emitters beyond
-    65504) is then not clamped, and a very dark one (mean 1e-4) is seen as the network knows it."""
-    key = log_average_luminance(color)
+    65504) is then not clamped, and a very dark one (mean 1e-4) is seen as the network knows it.
+    ``rows``: rows per block of :func:`log_average_luminance`."""
+    key = log_average_luminance(color, rows)
     if key == 0.0 or EXPOSURE_BAND[0] <= key <= EXPOSURE_BAND[1]:
         return 1.0
     return 2.0 ** min(64, max(-64, round(math.log2(EXPOSURE_TARGET / key))))
@@ -68,14 +80,17 @@ def sanitize(color: np.ndarray) -> np.ndarray:
                                  neginf=0.0), 0.0, HDR_MAX)
 
 
-def _check_inputs(config: ModelConfig, color: np.ndarray, aux: np.ndarray | None, variance: np.ndarray | None) -> None:
+def _check_inputs(config: ModelConfig, color: np.ndarray, aux: Aux, variance: np.ndarray | None) -> None:
     if config.aux_inputs != (aux is not None):
         raise ValueError("aux buffers are required by this model" if config.aux_inputs
                          else "this model takes no aux buffers")
     if color.ndim != 3 or color.shape[2] != 3 or min(color.shape[:2]) < 1:
         raise ValueError(f"color must be HxWx3, got shape {color.shape}")
-    if aux is not None and aux.shape != color.shape[:2] + (6,):
-        raise ValueError(f"aux must be HxWx6 like the image, got shape {aux.shape}")
+    if aux is not None:
+        shapes = [np.shape(a) for a in (aux if isinstance(aux, (tuple, list)) else [aux])]
+        if any(s[:2] != color.shape[:2] or len(s) != 3 for s in shapes) or sum(s[2] for s in shapes) != 6:
+            raise ValueError(f"aux must be HxWx6 like the image (or HxWx3 albedo and normals), got "
+                             f"shape {' and '.join(str(s) for s in shapes)}")
     if variance is not None and variance.shape != color.shape:
         raise ValueError(f"variance must be HxWx3 like the image, got shape {variance.shape}")
 
@@ -88,72 +103,109 @@ def _scaled(rgb: np.ndarray, scale: float) -> np.ndarray:
     return sanitize(rgb)
 
 
+def tile_bytes_per_pixel(config: ModelConfig, folded: bool = True) -> float:
+    """Peak scratch bytes per window pixel of one tile of :func:`denoise_image`, beyond
+    :data:`TILE_FIXED_BYTES`: the forward pass (:func:`model.architectures.inference_bytes_per_pixel`)
+    or the chain's steps around it (transfer, noise channels, inverse, with the input tensor),
+    whichever needs more."""
+    return max(inference_bytes_per_pixel(config, folded), PASS_BYTES_PER_PIXEL + 4.0 * config.image_channels)
+
+
+def pass_rows(width: int, bytes_per_pixel: float, max_bytes: float, most: int) -> int:
+    """Rows per block of a whole-image pass costing ``bytes_per_pixel`` of scratch: as many as
+    ``max_bytes`` allows, at least 1, at most ``most``."""
+    return max(1, min(most, int(max_bytes // (bytes_per_pixel * max(1, width)))))
+
+
 def noisy_region(color: np.ndarray, variance: np.ndarray, transfer: TransferFunction, scale: float,
-                 threshold: float, align: int) -> tuple[int, int, int, int] | None:
+                 threshold: float, align: int, max_bytes: float = DEFAULT_PASS_BYTES
+                 ) -> tuple[int, int, int, int] | None:
     """The smallest rectangle (y0, y1, x0, x1), on ``SKIP_CELL``-px cells (multiples of ``align``),
     that holds every cell whose RMS transfer-space noise (:func:`model.noise_input.noise_channels`)
-    is at least ``threshold``; None when no cell is. Computed one row of cells at a time."""
+    is at least ``threshold``; None when no cell is. Computed a block of cells at a time, each
+    within ``max_bytes`` of scratch (at least one cell)."""
     height, width = color.shape[:2]
     cell = max(align, SKIP_CELL // align * align)
+    step = cell * max(1, int(max_bytes // (PASS_BYTES_PER_PIXEL * cell * cell)))  # columns per block
     rows: list[int] = []
     cols: set[int] = set()
     for y in range(0, height, cell):
-        strip = noise_channels(_scaled(color[y:y + cell], scale),
-                               np.asarray(variance[y:y + cell], np.float32) * np.float32(scale * scale),
-                               transfer)[..., :3]
-        power = (strip * strip).sum(axis=2)
-        for x in range(0, width, cell):
-            if float(power[:, x:x + cell].mean()) >= threshold * threshold:
-                rows.append(y)
-                cols.add(x)
+        for x0 in range(0, width, step):
+            block = slice(y, y + cell), slice(x0, x0 + step)
+            strip = noise_channels(_scaled(color[block], scale),
+                                   np.asarray(variance[block], np.float32) * np.float32(scale * scale),
+                                   transfer)[..., :3]
+            power = (strip * strip).sum(axis=2)
+            for x in range(0, power.shape[1], cell):
+                if float(power[:, x:x + cell].mean()) >= threshold * threshold:
+                    rows.append(y)
+                    cols.add(x0 + x)
     if not rows:
         return None
     return min(rows), min(height, max(rows) + cell), min(cols), min(width, max(cols) + cell)
 
 
-def denoise_image(model: nn.Module, color: np.ndarray, aux: np.ndarray | None = None,
+def _aux_window(aux: Aux, t: Tile) -> torch.Tensor:
+    """The tile window of the aux buffers as an hxwx6 float32 tensor, non-finite values -> 0."""
+    parts = aux if isinstance(aux, (tuple, list)) else [aux]
+    window = np.concatenate([np.asarray(a[t.wy0:t.wy1, t.wx0:t.wx1], np.float32) for a in parts], axis=2)
+    return torch.from_numpy(np.nan_to_num(window, nan=0.0, posinf=0.0, neginf=0.0))
+
+
+def denoise_image(model: nn.Module, color: np.ndarray, aux: Aux = None,
                   core: int = 256, progress: Callable[[int, int], None] | None = None,
-                  variance: np.ndarray | None = None, skip_below: float | None = None) -> np.ndarray:
+                  variance: np.ndarray | None = None, skip_below: float | None = None,
+                  max_bytes: float = DEFAULT_PASS_BYTES) -> np.ndarray:
     """Denoise HxWx3 linear radiance -> HxWx3 float32 linear radiance >= 0 (at most HDR_MAX divided
     by :func:`exposure_scale`, i.e. HDR_MAX unless the image is unusually bright).
 
     ``model``: a network of :mod:`model.architectures` or its folded inference copy (anything
     with the ``config`` of the network). ``aux``: HxWx6 (albedo RGB in [0,1], normal XYZ in
-    [-1,1]); required iff the model was built with ``aux_inputs``. ``variance``: HxWx3 variance
+    [-1,1]), or the two HxWx3 buffers as a pair; required iff the model was built with
+    ``aux_inputs``. ``variance``: HxWx3 variance
     estimate of the image's mean (two halves); fed to a model with ``noise_input`` (without it
     such a model is told the noise is unknown) and used by ``skip_below`` (see the module
-    docstring). ``core``: tile core side in pixels (memory bound; the result does not depend on
-    it). The model runs in eval mode; its previous mode is restored.
+    docstring). ``core``: tile core side in pixels (memory bound of the tiles,
+    :func:`tile_bytes_per_pixel`; the result does not depend on it). ``max_bytes``: scratch
+    bound of the passes over the whole image (exposure, the skip test, copying skipped parts);
+    the result does not depend on it either. The model runs in eval mode; its previous mode is
+    restored.
     """
     config = model.config
     _check_inputs(config, color, aux, variance)
     transfer = get_transfer(config.transfer)
-    if aux is not None:
-        aux = np.nan_to_num(np.asarray(aux, dtype=np.float32), nan=0.0, posinf=0.0, neginf=0.0)
-    scale = exposure_scale(color)
-    align = alignment(config)
     height, width = color.shape[:2]
+    scale = exposure_scale(color, pass_rows(width, PASS_BYTES_PER_PIXEL, max_bytes, 256))
+    align = alignment(config)
     region = None
     out = None
     if variance is not None and skip_below is not None:
-        region = noisy_region(color, variance, transfer, scale, skip_below, align)
-        out = sanitize(color)
+        region = noisy_region(color, variance, transfer, scale, skip_below, align, max_bytes)
+        out = np.empty((height, width, 3), np.float32)
+        rows = pass_rows(width, PASS_BYTES_PER_PIXEL, max_bytes, height)
+        for y in range(0, height, rows):
+            out[y:y + rows] = sanitize(color[y:y + rows])
         if region is None:
             return out
 
     def net(t: Tile) -> np.ndarray:
+        h, w = t.wy1 - t.wy0, t.wx1 - t.wx0
         rgb = _scaled(color[t.wy0:t.wy1, t.wx0:t.wx1], scale)
-        parts = [transfer.forward(torch.from_numpy(rgb))]
+        x = torch.empty(1, config.image_channels, h, w)  # filled part by part: no concatenation
+        x[0, :3] = transfer.forward(torch.from_numpy(rgb)).permute(2, 0, 1)
         if aux is not None:
-            parts.append(torch.from_numpy(aux[t.wy0:t.wy1, t.wx0:t.wx1]))
+            x[0, 3:9] = _aux_window(aux, t).permute(2, 0, 1)
         if config.noise_input:
             var = None if variance is None else \
                 np.asarray(variance[t.wy0:t.wy1, t.wx0:t.wx1], np.float32) * np.float32(scale * scale)
-            parts.append(torch.from_numpy(noise_channels(rgb, var, transfer, config.noise_radius)))
-        x = torch.cat(parts, dim=2)
-        y = model(x.permute(2, 0, 1).contiguous()[None])[0]
-        result = transfer.inverse(torch.nan_to_num(y, nan=0.0).clamp(0.0, 1.0)).permute(1, 2, 0).numpy()
-        return result if scale == 1.0 else result / np.float32(scale)
+            x[0, config.noise_start:] = torch.from_numpy(
+                noise_channels(rgb, var, transfer, config.noise_radius)).permute(2, 0, 1)
+            del var
+        del rgb
+        y = model(x)[0]
+        del x
+        y = transfer.inverse(torch.nan_to_num_(y, nan=0.0).clamp_(0.0, 1.0)).permute(1, 2, 0).numpy()
+        return y if scale == 1.0 else np.divide(y, np.float32(scale), out=y)
 
     was_training = model.training
     model.eval()

@@ -14,10 +14,11 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from imaging.allocator import fix_mmap_threshold
 from imaging.errors import DenoiserError
 from imaging.hashing import file_sha256
-from imaging.tiling import core_for_budget, run_tiled
-from pipeline.noise_guard import DEFAULT_STRENGTH, blend, blend_weight, strength_for
+from imaging.tiling import core_for_budget
+from pipeline.noise_guard import DEFAULT_STRENGTH, guard_in_place, strength_for
 
 if TYPE_CHECKING:
     from imaging.render import RenderResult
@@ -63,11 +64,19 @@ class DenoiseResult:
     network: np.ndarray | None = None  # the network's output before the guard (``keep_network``)
 
 
-def count_invalid(rgb: np.ndarray) -> tuple[int, int]:
-    """Numbers of non-finite and of negative values in an image (both are replaced by 0)."""
-    nonfinite = rgb.size - int(np.count_nonzero(np.isfinite(rgb)))
-    with np.errstate(invalid="ignore"):  # no copies: this runs on 8K images
-        negative = int(np.count_nonzero(rgb < 0)) - int(np.count_nonzero(np.isneginf(rgb)))
+COUNT_BYTES_PER_PIXEL = 4  # count_invalid: one boolean mask of a row block's 3 channels at a time
+
+
+def count_invalid(rgb: np.ndarray, rows: int | None = None) -> tuple[int, int]:
+    """Numbers of non-finite and of negative values in an HxWxC image (both are replaced by 0),
+    counted ``rows`` rows at a time (None: all at once); no copy of the image is made."""
+    nonfinite = negative = 0
+    step = rows or max(1, rgb.shape[0])
+    for y in range(0, rgb.shape[0], step):
+        block = rgb[y:y + step]
+        nonfinite += block.size - int(np.count_nonzero(np.isfinite(block)))
+        with np.errstate(invalid="ignore"):
+            negative += int(np.count_nonzero(block < 0)) - int(np.count_nonzero(np.isneginf(block)))
     return nonfinite, negative
 
 
@@ -76,7 +85,14 @@ class Denoiser:
 
     ``checkpoint``: a file written by ``train`` or a preset name (:func:`resolve_model`; default:
     the shipped ``model/weights/default.ckpt``).
-    ``max_memory_mb`` bounds the activations of one tile; ``threads`` sets torch's CPU threads.
+    ``max_memory_mb`` bounds the scratch memory of :meth:`denoise_array` as OIDN's
+    ``maxMemoryMB`` does: the memory it uses beyond the input and output images (the output,
+    the guard's weight map and, asked for, the network's output). Every step works within it:
+    counting invalid values and the exposure in row blocks, the network on tiles planned with
+    :func:`model.infer.tile_bytes_per_pixel`, the noise guard on tiles and row blocks
+    (:func:`pipeline.noise_guard.guard_in_place`). Creating a Denoiser fixes glibc's mmap
+    threshold for the process (:mod:`imaging.allocator`): without it freed tile temporaries stay
+    resident and the process peaks at about twice that. ``threads`` sets torch's CPU threads.
     ``optimize``: run the folded, concatenation-free copy of the model
     (:mod:`model.inference_net`, :mod:`model.inference_unet`; equal up to float32 rounding)
     instead of the training module. ``skip_below``: with a variance, leave the parts of the image
@@ -96,9 +112,11 @@ class Denoiser:
             raise DenoiserError(f"max memory must be positive and finite, got {max_memory_mb} MB")
         if threads:
             torch.set_num_threads(int(threads))
+        fix_mmap_threshold()
         self.path = path
         self.model, self.config, self.meta = load_model(path)
         self.model.eval()
+        self.optimize = optimize
         self.net = prepare_for_inference(self.model) if optimize else self.model
         self.max_memory_mb = float(max_memory_mb)
         self.margin = receptive_radius(self.config)
@@ -117,16 +135,23 @@ class Denoiser:
         """True when the model consumes albedo and normals (the render must provide them)."""
         return bool(self.config.aux_inputs)
 
+    @property
+    def max_bytes(self) -> float:
+        """The scratch memory bound in bytes."""
+        return self.max_memory_mb * 2**20
+
     def bytes_per_pixel(self) -> float:
-        """Peak activation bytes per input pixel (float32) of one forward pass, with headroom."""
-        c = self.config
-        widest = (c.init_features + c.layers * c.growth) if c.arch == "densenet" else 2 * c.init_features
-        channels = 2 * widest + 2 * c.bottleneck * c.growth + 2 * c.in_channels + 16
-        return 4.0 * channels * 1.5
+        """Peak scratch bytes per window pixel of one tile (:func:`model.infer.tile_bytes_per_pixel`)."""
+        from model.infer import tile_bytes_per_pixel
+
+        return tile_bytes_per_pixel(self.config, self.optimize)
 
     def core_size(self) -> int:
-        """Tile core side that keeps one tile's activations under ``max_memory_mb``."""
-        return core_for_budget(self.bytes_per_pixel(), self.max_memory_mb * 2**20, self.margin)
+        """Tile core side that keeps one tile within ``max_memory_mb``: its window's pixels at
+        :meth:`bytes_per_pixel`, plus the fixed cost of a forward pass."""
+        from model.infer import TILE_FIXED_BYTES
+
+        return core_for_budget(self.bytes_per_pixel(), self.max_bytes - TILE_FIXED_BYTES, self.margin)
 
     def denoise_array(self, rgb: np.ndarray, albedo: np.ndarray | None = None,
                       normals: np.ndarray | None = None, variance: np.ndarray | None = None,
@@ -137,14 +162,16 @@ class Denoiser:
         halves, :func:`imaging.render.render_loaded`); given, the output is blended with the
         render where the render's noise does not explain the change (:mod:`pipeline.noise_guard`).
         ``keep_network``: also return the network's output before that blend (``network``).
+        None of the inputs is changed or copied whole.
         """
-        from model.infer import denoise_image
+        from model.infer import denoise_image, pass_rows
 
         rgb = np.asarray(rgb)
         if rgb.ndim != 3 or rgb.shape[2] != 3 or min(rgb.shape[:2]) < 1:
             raise DenoiserError(f"expected an HxWx3 image, got shape {rgb.shape}")
         start = time.perf_counter()
-        nonfinite, negative = count_invalid(rgb)
+        height, width = rgb.shape[:2]
+        nonfinite, negative = count_invalid(rgb, pass_rows(width, COUNT_BYTES_PER_PIXEL, self.max_bytes, height))
         aux = None
         if self.needs_aovs:
             if albedo is None or normals is None:
@@ -152,21 +179,21 @@ class Denoiser:
             for buffer in (albedo, normals):
                 if np.shape(buffer) != rgb.shape:
                     raise DenoiserError(f"AOV shape {np.shape(buffer)} differs from image {rgb.shape}")
-            aux = np.concatenate([np.asarray(albedo, np.float32), np.asarray(normals, np.float32)], axis=2)
+            aux = (np.asarray(albedo), np.asarray(normals))
         if variance is not None and np.shape(variance) != rgb.shape:
             raise DenoiserError(f"variance shape {np.shape(variance)} differs from image {rgb.shape}")
         count = [0]
         out = denoise_image(self.net, rgb, aux, self.core_size(),
                             progress=lambda n, total: count.__setitem__(0, total),
-                            variance=variance, skip_below=self.skip_below)
+                            variance=variance, skip_below=self.skip_below, max_bytes=self.max_bytes)
+        network = None
+        if keep_network:  # the guard changes ``out`` in place
+            network = out.copy() if variance is not None else out
         weight = weights = None
-        network = out if keep_network else None
         if variance is not None:
-            with np.errstate(invalid="ignore"):
-                clean = np.clip(np.nan_to_num(np.asarray(rgb, np.float32), nan=0.0, posinf=0.0,
-                                              neginf=0.0), 0.0, None)
-            weights = blend_weight(clean, out, np.asarray(variance, np.float32), strength=strength)
-            out, weight = blend(clean, out, weights), float(weights.mean())
+            weights = np.empty((height, width, 1), np.float32)
+            guard_in_place(rgb, out, variance, weights, self.max_bytes, strength=strength)
+            weight = float(weights.mean())
         return DenoiseResult(out, nonfinite, negative, time.perf_counter() - start, count[0], weight,
                              None if weights is None else weights[:, :, 0], network)
 

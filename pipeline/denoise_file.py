@@ -26,8 +26,11 @@ from imaging.exr_layers import (ALBEDO_WORDS, NORMAL_WORDS, VARIANCE_WORDS, ExrF
                                  replace_layer, write_exr_file)
 from imaging.metrics import all_metrics
 from imaging.render import half_variance
+from model.infer import pass_rows
 from pipeline.denoise import Denoiser
 from pipeline.noise_guard import DEFAULT_STRENGTH, strength_for
+
+HALVES_BYTES_PER_PIXEL = 128  # combine_halves: float64 temporaries of the mean and the variance
 
 
 @dataclass
@@ -107,17 +110,23 @@ def read_input(path: str | Path, layer: str | None = None, variance_layer: str |
                       variance=variance, variance_layer=var_name, spp=_spp_attribute(exr, color.part))
 
 
-def combine_halves(a: InputImage, b: InputImage) -> InputImage:
+def combine_halves(a: InputImage, b: InputImage, max_bytes: float = 64 * 2**20) -> InputImage:
     """The render whose two independent halves are ``a`` and ``b``: their spp-weighted mean (equal
-    weights unless both files give their ``spp``) with its variance, in ``a``'s layout."""
+    weights unless both files give their ``spp``) with its variance, in ``a``'s layout; computed
+    in row blocks within ``max_bytes`` of scratch memory."""
     if a.rgb.shape != b.rgb.shape:
         raise DenoiserError(f"{b.path}: half is {b.rgb.shape[1]}x{b.rgb.shape[0]}, "
                             f"{a.path} is {a.rgb.shape[1]}x{a.rgb.shape[0]}")
     n_a, n_b = (a.spp, b.spp) if a.spp and b.spp else (1, 1)
-    mean = ((n_a * a.rgb.astype(np.float64) + n_b * b.rgb) / (n_a + n_b)).astype(np.float32)
+    mean, variance = np.empty(a.rgb.shape, np.float32), np.empty(a.rgb.shape, np.float32)
+    height, width = a.rgb.shape[:2]
+    rows = pass_rows(width, HALVES_BYTES_PER_PIXEL, max_bytes, height)
+    for y in range(0, height, rows):
+        block = slice(y, y + rows)
+        mean[block] = (n_a * a.rgb[block].astype(np.float64) + n_b * b.rgb[block]) / (n_a + n_b)
+        variance[block] = half_variance(a.rgb[block], b.rgb[block], n_a, n_b)
     spp = a.spp + b.spp if a.spp and b.spp else None
-    return InputImage(a.path, mean, a.exr, a.layer, a.albedo, a.normals,
-                      half_variance(a.rgb, b.rgb, n_a, n_b), "halves", spp)
+    return InputImage(a.path, mean, a.exr, a.layer, a.albedo, a.normals, variance, "halves", spp)
 
 
 def _write(cfg: DenoiseFileConfig, image: InputImage, result: np.ndarray, model: str) -> str:
@@ -143,7 +152,7 @@ def denoise_file(cfg: DenoiseFileConfig) -> dict[str, Any]:
         raise DenoiserError("two halves give the variance: --variance-layer is for a single input")
     denoiser = Denoiser(cfg.model, max_memory_mb=cfg.max_memory_mb)
     images = [read_input(p, cfg.layer, cfg.variance_layer) for p in cfg.inputs]
-    image = images[0] if len(images) == 1 else combine_halves(*images)
+    image = images[0] if len(images) == 1 else combine_halves(*images, max_bytes=denoiser.max_bytes)
     ref = read_input(cfg.reference).rgb if cfg.reference else None
     if ref is not None and ref.shape != image.rgb.shape:
         raise DenoiserError(f"{cfg.reference}: reference is {ref.shape[1]}x{ref.shape[0]}, "

@@ -18,14 +18,25 @@ RGB. Where a render is noisy, a good denoiser's change is the noise (``D ~ V``, 
 output passes unchanged); where a render has converged (V -> 0) whatever the denoiser changed is
 its own error and the render is kept. ``strength`` s scales V (``w = min(1, s*V/D)``);
 ``benchmarks/noise_guard.py`` measures the window and s used by default.
+
+Window sums add each window's own values (not a running sum), so :func:`guard_in_place`, which
+computes the weights tile by tile and blends in row blocks within a memory budget, gives the
+whole-image result bit for bit.
 """
 from __future__ import annotations
 
 import numpy as np
 
+from imaging.tiling import Tile, core_for_budget, run_windows
+
 DEFAULT_RADIUS = 2      # window 5x5 (benchmarks/noise_guard.py)
 DEFAULT_STRENGTH = 1.0  # 1: the Wiener weight; larger trusts the denoiser more
 DEFAULT_PIVOT_SPP = 256  # below this many spp the strength grows as pivot/spp (benchmarks/noise_guard.py)
+# Peak scratch bytes per pixel (numpy allocations, traced) of blend_weight with clean_render's copy
+# of its window, and of blend with its copy, both float32 HxWx3 in: a bound with headroom of what
+# tests/test_noise_guard.py measures with tracemalloc.
+GUARD_BYTES_PER_PIXEL = 112
+BLEND_BYTES_PER_PIXEL = 48
 
 
 def strength_for(spp: int, pivot_spp: float = DEFAULT_PIVOT_SPP) -> float:
@@ -40,47 +51,67 @@ def strength_for(spp: int, pivot_spp: float = DEFAULT_PIVOT_SPP) -> float:
 
 
 def box_mean(img: np.ndarray, radius: int) -> np.ndarray:
-    """Mean over a (2r+1)^2 window per channel of an HxWxC image, the window cut at the borders."""
+    """Mean over a (2r+1)^2 window per channel of an HxWxC image, the window cut at the borders;
+    HxWxC float32. Each sum adds its window's values in one fixed order (rows, then columns), in
+    float64, so a tile computed with ``radius`` pixels of context beside its core equals the
+    whole image's result there bit for bit (a running sum would not, and would lose a dim
+    pixel's sum beside a firefly to cancellation)."""
     if radius < 0:
         raise ValueError(f"radius must be >= 0, got {radius}")
-    count = np.ones(img.shape[:2])
-    for axis in (0, 1):
-        count = _box_sum_1d(count, radius, axis)
+    height, width, channels = img.shape
+    count = np.outer(_window_counts(height, radius), _window_counts(width, radius))
     out = np.empty(img.shape, np.float32)
-    for c in range(img.shape[2]):
+    for c in range(channels):
         plane = np.asarray(img[:, :, c], np.float64)
-        for axis in (0, 1):
-            plane = _box_sum_1d(plane, radius, axis)
-        out[:, :, c] = plane / count
+        out[:, :, c] = _box_sum_1d(_box_sum_1d(plane, radius, 0), radius, 1) / count
     return out
 
 
-def _box_sum_1d(a: np.ndarray, radius: int, axis: int) -> np.ndarray:
-    """Sum over ``[i-r, i+r]`` along ``axis`` (indices outside the array contribute nothing)."""
-    n = a.shape[axis]
-    c = np.cumsum(a, axis=axis)
-    c = np.concatenate([np.zeros_like(np.take(c, [0], axis=axis)), c], axis=axis)
+def _window_counts(n: int, radius: int) -> np.ndarray:
+    """Pixels inside the window ``[i-r, i+r]`` cut to ``[0, n)``, for each i (float64)."""
     idx = np.arange(n)
-    hi = np.minimum(idx + radius + 1, n)
-    lo = np.maximum(idx - radius, 0)
-    return np.take(c, hi, axis=axis) - np.take(c, lo, axis=axis)
+    return (np.minimum(idx + radius, n - 1) - np.maximum(idx - radius, 0) + 1).astype(np.float64)
+
+
+def _box_sum_1d(a: np.ndarray, radius: int, axis: int) -> np.ndarray:
+    """Sum over ``[i-r, i+r]`` along ``axis`` of a 2-D float64 array (indices outside it contribute
+    nothing), added from the window's first index to its last."""
+    n = a.shape[axis]
+    out = np.zeros(a.shape, np.float64)
+    for k in range(-radius, radius + 1):
+        lo, hi = max(0, -k), min(n, n - k)  # the i whose neighbour i+k lies inside
+        if lo < hi:
+            dst = (slice(lo, hi),) if axis == 0 else (slice(None), slice(lo, hi))
+            src = (slice(lo + k, hi + k),) if axis == 0 else (slice(None), slice(lo + k, hi + k))
+            out[dst] += a[src]
+    return out
 
 
 def blend_weight(noisy: np.ndarray, denoised: np.ndarray, variance: np.ndarray,
                  radius: int = DEFAULT_RADIUS, strength: float = DEFAULT_STRENGTH) -> np.ndarray:
     """HxWx1 weight of the denoiser's output: ``min(1, strength * V / D)`` with V the window mean
     of the render's variance and D that of the squared change ``(denoised - noisy)^2`` (summed
-    over channels). Non-finite variance in a window: weight 1 there."""
+    over channels). Non-finite variance in a window: weight 1 there. Scratch memory: at most
+    :data:`GUARD_BYTES_PER_PIXEL` per pixel, with :func:`clean_render`'s copy."""
     if not (strength > 0 and np.isfinite(strength)):
         raise ValueError(f"strength must be positive and finite, got {strength}")
     if not noisy.shape == denoised.shape == variance.shape:
         raise ValueError(f"shapes differ: noisy {noisy.shape}, denoised {denoised.shape}, "
                          f"variance {variance.shape}")
-    var = np.asarray(variance, np.float64)
+    var = np.array(variance, np.float64)  # a copy: changed in place below
     unbounded = ~np.isfinite(var).all(axis=2, keepdims=True)
-    v = box_mean(np.where(unbounded, 0.0, np.maximum(var, 0)).sum(axis=2, keepdims=True), radius)
-    change = np.asarray(denoised, np.float64) - np.asarray(noisy, np.float64)
-    d = box_mean((change * change).sum(axis=2, keepdims=True), radius)
+    np.maximum(var, 0, out=var)
+    var[np.broadcast_to(unbounded, var.shape)] = 0.0
+    total = var.sum(axis=2, keepdims=True)
+    del var
+    v = box_mean(total, radius)
+    change = np.array(denoised, np.float64)
+    np.subtract(change, noisy, out=change)
+    np.multiply(change, change, out=change)
+    total = change.sum(axis=2, keepdims=True)
+    del change
+    d = box_mean(total, radius)
+    del total
     with np.errstate(divide="ignore", invalid="ignore"):
         w = np.where(d > strength * v, strength * v / d, 1.0)
     w[box_mean(unbounded.astype(np.float32), radius) > 0] = 1.0
@@ -100,3 +131,37 @@ def guard(noisy: np.ndarray, denoised: np.ndarray, variance: np.ndarray,
     the denoiser's output unchanged)."""
     w = blend_weight(noisy, denoised, variance, radius, strength)
     return blend(noisy, denoised, w), float(w.mean())
+
+
+def clean_render(noisy: np.ndarray) -> np.ndarray:
+    """The render the guard blends with: float32 HxWx3, NaN and infinities -> 0, negatives -> 0."""
+    with np.errstate(invalid="ignore"):
+        return np.clip(np.nan_to_num(np.asarray(noisy, np.float32), nan=0.0, posinf=0.0, neginf=0.0), 0.0, None)
+
+
+def guard_in_place(noisy: np.ndarray, denoised: np.ndarray, variance: np.ndarray, weights: np.ndarray,
+                   max_bytes: float, radius: int = DEFAULT_RADIUS, strength: float = DEFAULT_STRENGTH) -> None:
+    """:func:`guard` of a whole image within ``max_bytes`` of scratch memory, bit for bit.
+
+    ``noisy``: HxWx3 render (any float dtype; :func:`clean_render` is applied), ``variance`` its
+    HxWx3 variance (read as float32); ``denoised``: HxWx3 float32, replaced by the blend; ``weights``: HxWx1
+    float32, filled with :func:`blend_weight`. The weights are computed on tiles with ``radius``
+    pixels of context (:func:`box_mean` makes them exact), then blended in row blocks: the
+    weights need the unblended output around each tile, so it is changed only once they are
+    all known. A tile or a block is at least 16 px or one row wide, whatever ``max_bytes`` says.
+    """
+    height, width = denoised.shape[:2]
+    if weights.shape != (height, width, 1) or weights.dtype != np.float32:
+        raise ValueError(f"weights must be HxWx1 float32 like the image, got {weights.shape} {weights.dtype}")
+
+    def weight(t: Tile) -> np.ndarray:
+        window = slice(t.wy0, t.wy1), slice(t.wx0, t.wx1)
+        return blend_weight(clean_render(noisy[window]), denoised[window],
+                            np.asarray(variance[window], np.float32), radius, strength)
+
+    run_windows(weight, height, width, core_for_budget(GUARD_BYTES_PER_PIXEL, max_bytes, radius), radius,
+                out=weights)
+    rows = max(1, int(max_bytes // (BLEND_BYTES_PER_PIXEL * width)))
+    for y in range(0, height, rows):
+        block = slice(y, y + rows)
+        denoised[block] = blend(clean_render(noisy[block]), denoised[block], weights[block])

@@ -13,6 +13,7 @@ from model.architectures import build_model
 from model.checkpoint import save_checkpoint
 from model.config import ModelConfig
 from pipeline.denoise import Denoiser, count_invalid
+from pipeline.noise_guard import blend_weight, clean_render, guard
 
 TINY = ModelConfig(layers=3, growth=4, init_features=8)
 
@@ -48,6 +49,48 @@ def test_tiled_equals_untiled_within_1e4(ckpt: Path) -> None:
     b = tiny.denoise_array(img)
     assert a.tiles == 1 and b.tiles > 4
     np.testing.assert_allclose(b.image, a.image, rtol=1e-4, atol=1e-4)
+
+
+def _with_noise(h: int, w: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """An image with NaN, Inf and negative values, and a variance with an infinite value."""
+    img = _image(h, w, seed)
+    img[3, 4] = [np.nan, np.inf, -1.0]
+    variance = (np.random.default_rng(seed + 1).random((h, w, 3)) * 0.2).astype(np.float32)
+    variance[h // 2, w // 3, 2] = np.inf
+    return img, variance
+
+
+def test_budget_leaves_the_whole_chain_unchanged(ckpt: Path) -> None:
+    """Noise guard on: a 0.05 MB budget (many network tiles, guard tiles, row blocks) gives the
+    result of an untiled run, within the tolerance of the network's tiling (rtol 1e-4)."""
+    img, variance = _with_noise(61, 47)
+    a = Denoiser(ckpt, max_memory_mb=1024).denoise_array(img, variance=variance, strength=3.0)
+    b = Denoiser(ckpt, max_memory_mb=0.05).denoise_array(img, variance=variance, strength=3.0)
+    assert a.tiles == 1 and b.tiles > 4
+    np.testing.assert_allclose(b.image, a.image, rtol=1e-4, atol=1e-4)
+    np.testing.assert_allclose(b.guard_map, a.guard_map, rtol=1e-4, atol=1e-4)
+    assert b.guard_weight == pytest.approx(a.guard_weight, rel=1e-4)
+    assert (b.nonfinite, b.negative) == (a.nonfinite, a.negative) == (2, 1)
+
+
+@pytest.mark.parametrize("max_memory_mb", [0.05, 1024])
+def test_guard_per_tile_is_the_whole_image_guard(ckpt: Path, max_memory_mb: float) -> None:
+    """The guard run tile by tile on the network's output equals the whole-image guard of that
+    output bit for bit (image, weight map, mean weight)."""
+    img, variance = _with_noise(61, 47, seed=5)
+    res = Denoiser(ckpt, max_memory_mb=max_memory_mb).denoise_array(img, variance=variance, strength=3.0,
+                                                                    keep_network=True)
+    expected, mean = guard(clean_render(img), res.network, variance, strength=3.0)
+    assert np.array_equal(res.image, expected) and not np.array_equal(res.image, res.network)
+    assert res.guard_weight == mean
+    assert np.array_equal(res.guard_map, blend_weight(clean_render(img), res.network, variance, strength=3.0)[..., 0])
+
+
+def test_count_invalid_in_row_blocks() -> None:
+    img = _image(9, 7)
+    img[0, 0, 0], img[4, 6, 2], img[8, 0, 1], img[5, 5, 0] = np.nan, -np.inf, -3.0, np.inf
+    assert count_invalid(img) == (3, 1)
+    assert all(count_invalid(img, rows) == (3, 1) for rows in (1, 2, 4, 9, 100))
 
 
 def test_call_returns_same_kind(ckpt: Path, mi: Any) -> None:

@@ -126,6 +126,8 @@ def test_halves_mean_and_variance(tmp_path: Path, rng: np.random.Generator, spp_
     if spp_a == spp_b:
         np.testing.assert_allclose(both.variance, (a - b) ** 2 / 4, rtol=1e-5, atol=1e-9)
     assert both.spp == (spp_a + spp_b if spp_a else None)
+    rows = combine_halves(read_input(tmp_path / "a.exr"), read_input(tmp_path / "b.exr"), max_bytes=1.0)
+    assert np.array_equal(rows.rgb, both.rgb) and np.array_equal(rows.variance, both.variance)  # one row at a time
 
 
 def test_halves_command(tmp_path: Path, rng: np.random.Generator, ckpt: Path, denoiser: Denoiser,

@@ -1,14 +1,20 @@
 """Whole-image inference: tiled == untiled, range, aux handling."""
 from __future__ import annotations
 
+import json
+import subprocess
+import sys
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
 
-from model.config import ModelConfig
-from model.infer import denoise_image
-from model.architectures import build_model
-from model.transfer import HDR_MAX
+from model.checkpoint import save_checkpoint
+from model.config import PRESETS, ModelConfig
+from model.infer import denoise_image, noisy_region
+from model.architectures import alignment, build_model
+from model.transfer import HDR_MAX, get_transfer
 
 
 def _model(**kw: object) -> torch.nn.Module:
@@ -56,3 +62,72 @@ def test_aux_required_iff_model_uses_it() -> None:
         denoise_image(_model(), color, np.zeros((8, 8, 6), np.float32))
     out = denoise_image(_model(aux_inputs=True), color, np.zeros((8, 8, 6), np.float32))
     assert out.shape == (8, 8, 3)
+
+
+def test_aux_as_two_buffers_is_aux_as_one() -> None:
+    model = _model(aux_inputs=True)
+    rng = np.random.default_rng(3)
+    color = rng.random((20, 23, 3), dtype=np.float32)
+    albedo, normals = rng.random((20, 23, 3), dtype=np.float32), rng.random((20, 23, 3), dtype=np.float32) - 0.5
+    albedo[2, 2, 0] = np.nan
+    whole = denoise_image(model, color, np.concatenate([albedo, normals], axis=2), core=8)
+    assert np.array_equal(denoise_image(model, color, (albedo, normals), core=8), whole)
+    with pytest.raises(ValueError, match="aux must be HxWx6"):
+        denoise_image(model, color, (albedo, normals[:, :5]))
+
+
+def test_whole_image_passes_do_not_depend_on_their_budget() -> None:
+    """Exposure, the skip test and copying the skipped parts, in blocks of one row (one cell)
+    or all at once: the same image, the same region."""
+    model = _model(noise_input=True)
+    rng = np.random.default_rng(4)
+    color = (rng.random((150, 140, 3), dtype=np.float32) * 1e-5)  # dark: scaled by the exposure
+    variance = np.zeros_like(color)
+    variance[70:90, 10:30] = 1e-9  # one noisy corner of the image
+    color[5, 5] = [np.nan, np.inf, -1.0]
+    args = dict(core=32, variance=variance, skip_below=1e-3)
+    small, large = (denoise_image(model, color, max_bytes=b, **args) for b in (1.0, 1e9))
+    assert np.array_equal(small, large) and np.array_equal(small[:64], np.nan_to_num(color[:64], posinf=HDR_MAX).clip(0))
+    transfer, align = get_transfer("log"), alignment(model.config)
+    assert noisy_region(color, variance, transfer, 2.0**13, 1e-3, align, 1.0) == \
+        noisy_region(color, variance, transfer, 2.0**13, 1e-3, align, 1e9) == (64, 128, 0, 64)
+
+
+_TILE_CHILD = """
+import gc, json, sys
+import numpy as np
+from model.infer import denoise_image
+from pipeline.denoise import Denoiser
+
+def status(key):
+    for line in open("/proc/self/status"):
+        if line.startswith(key + ":"):
+            return int(line.split()[1]) * 1024
+
+den = Denoiser(sys.argv[1], max_memory_mb=float(sys.argv[2]), optimize=sys.argv[3] == "folded")
+side = den.core_size() + 2 * den.margin  # the largest window the planner makes
+rng = np.random.default_rng(0)
+image = rng.random((side, side, 3), dtype=np.float32)
+variance = rng.random(image.shape, dtype=np.float32) * 0.01
+gc.collect()
+open("/proc/self/clear_refs", "w").write("5")
+start = status("VmRSS")
+out = denoise_image(den.net, image, core=side, variance=variance)
+print(json.dumps({"scratch_mb": (status("VmHWM") - start - out.nbytes) / 2**20, "side": side}))
+"""
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("preset,setting,budget", [("fast", "folded", 128), ("fast", "module", 128),
+                                                   ("balanced", "folded", 256), ("u-fast", "folded", 256)])
+def test_a_tile_planned_under_a_budget_stays_under_it(tmp_path: Path, preset: str, setting: str,
+                                                      budget: float) -> None:
+    """One window as large as the Denoiser plans under ``budget`` MB, denoised in a fresh process
+    (random weights: memory does not depend on them): its resident scratch beyond the output
+    within 1.1x the budget, and above half of it (the estimate is not idly conservative)."""
+    path = tmp_path / f"{preset}.ckpt"
+    save_checkpoint(path, build_model(PRESETS[preset]), step=0)
+    proc = subprocess.run([sys.executable, "-c", _TILE_CHILD, str(path), str(budget), setting], capture_output=True,
+                          text=True, check=True, cwd=Path(__file__).resolve().parents[1])
+    m = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert 0.5 * budget <= m["scratch_mb"] <= 1.1 * budget, m

@@ -1,11 +1,15 @@
 """The noise guard: window means, the Wiener blend of render and denoiser."""
 from __future__ import annotations
 
+import math
+import tracemalloc
+
 import numpy as np
 import pytest
 
 from imaging.render import render
-from pipeline.noise_guard import blend_weight, box_mean, guard
+from pipeline.noise_guard import (BLEND_BYTES_PER_PIXEL, GUARD_BYTES_PER_PIXEL, blend, blend_weight, box_mean,
+                                  clean_render, guard, guard_in_place)
 
 
 def _brute_box_mean(img: np.ndarray, r: int) -> np.ndarray:
@@ -21,6 +25,97 @@ def _brute_box_mean(img: np.ndarray, r: int) -> np.ndarray:
 def test_box_mean_matches_brute_force(radius: int) -> None:
     img = np.random.default_rng(0).random((7, 5, 2)).astype(np.float32)
     np.testing.assert_allclose(box_mean(img, radius), _brute_box_mean(img, radius), rtol=1e-5)
+
+
+@pytest.mark.parametrize("radius", [1, 2, 5])
+def test_box_mean_of_a_tile_with_its_context_is_the_whole_image_s(radius: int) -> None:
+    """Bit for bit: a core's window sums add the same values in the same order whichever
+    rectangle holds the core and ``radius`` pixels beside it (cut at the image's borders)."""
+    img = (np.random.default_rng(1).random((40, 33, 2)) ** 4 * 1e3).astype(np.float32)
+    whole = box_mean(img, radius)
+    for y0, y1, x0, x1 in [(0, 11, 0, 9), (11, 29, 9, 24), (29, 40, 24, 33), (5, 6, 0, 33)]:
+        wy0, wx0 = max(0, y0 - radius), max(0, x0 - radius)
+        tile = box_mean(img[wy0:y1 + radius, wx0:x1 + radius], radius)
+        assert np.array_equal(tile[y0 - wy0:y1 - wy0, x0 - wx0:x1 - wx0], whole[y0:y1, x0:x1])
+
+
+def test_box_mean_beside_a_firefly_keeps_a_dim_window_s_mean() -> None:
+    """A running sum loses a dim window's sum to cancellation once a firefly's square (1e12) has
+    entered it; the window's own sums do not (exact sum: math.fsum)."""
+    img = np.random.default_rng(2).random((12, 300, 1)) * 1e-2
+    img[5, 3, 0] = 1e12
+    got = box_mean(img, 2)[:, :, 0]
+    for y, x in [(5, 20), (5, 299), (7, 150), (0, 0)]:
+        window = img[max(0, y - 2):y + 3, max(0, x - 2):x + 3, 0]
+        assert got[y, x] == pytest.approx(math.fsum(window.ravel()) / window.size, rel=1e-6)
+
+
+def _guard_case(h: int, w: int, seed: int = 3) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    noisy = rng.random((h, w, 3), dtype=np.float32) * 3
+    noisy.flat[::97] = np.nan
+    noisy.flat[5::89] = -np.inf
+    noisy.flat[7::83] = np.inf
+    noisy.flat[11::79] = -2.0
+    denoised = rng.random((h, w, 3), dtype=np.float32)
+    variance = rng.random((h, w, 3), dtype=np.float32) * 0.1
+    variance.flat[13::101] = np.inf
+    return noisy, denoised, variance
+
+
+@pytest.mark.parametrize("shape", [(61, 47), (1, 40), (40, 1), (130, 90)])
+@pytest.mark.parametrize("max_bytes", [1.0, 50e3, 1e9])
+def test_guard_in_place_is_the_whole_image_guard(shape: tuple[int, int], max_bytes: float) -> None:
+    """Tiles for the weights, row blocks for the blend, any budget: the whole-image guard's
+    image, weights and mean weight to the last bit."""
+    noisy, denoised, variance = _guard_case(*shape)
+    expected, mean = guard(clean_render(noisy), denoised, variance, strength=2.0)
+    weights = np.full((*shape, 1), np.nan, np.float32)
+    out = denoised.copy()
+    guard_in_place(noisy, out, variance, weights, max_bytes, strength=2.0)
+    assert np.array_equal(out, expected)
+    assert np.array_equal(weights, blend_weight(clean_render(noisy), denoised, variance, strength=2.0))
+    assert float(weights.mean()) == mean
+
+
+def test_guard_in_place_refuses_a_wrong_weight_map() -> None:
+    noisy, denoised, variance = _guard_case(8, 8)
+    with pytest.raises(ValueError, match="weights must be HxWx1 float32"):
+        guard_in_place(noisy, denoised, variance, np.zeros((8, 8), np.float32), 1e6)
+
+
+def _traced_peak(fn) -> int:
+    """Peak bytes numpy allocated while ``fn`` ran, beyond what it returns (tracemalloc)."""
+    tracemalloc.start()
+    try:
+        before = tracemalloc.get_traced_memory()[0]
+        tracemalloc.reset_peak()
+        result = fn()
+        return tracemalloc.get_traced_memory()[1] - before - getattr(result, "nbytes", 0)
+    finally:
+        tracemalloc.stop()
+
+
+@pytest.mark.parametrize("shape", [(20, 20), (64, 64), (100, 37), (300, 300), (1, 500), (500, 3)])
+def test_guard_scratch_per_pixel_stays_under_its_stated_bound(shape: tuple[int, int]) -> None:
+    """What the tile planner assumes: blend_weight with clean_render's copy, and blend, within
+    their bytes per pixel (+ 16 KiB of Python objects)."""
+    noisy, denoised, variance = _guard_case(*shape)
+    pixels = shape[0] * shape[1]
+    weight = _traced_peak(lambda: blend_weight(clean_render(noisy), denoised, variance))
+    assert weight <= GUARD_BYTES_PER_PIXEL * pixels + 16384
+    w = blend_weight(clean_render(noisy), denoised, variance)
+    assert _traced_peak(lambda: blend(clean_render(noisy), denoised, w)) <= BLEND_BYTES_PER_PIXEL * pixels + 16384
+
+
+def test_guard_in_place_stays_within_its_budget() -> None:
+    """A 600x500 image within 2 MB (the same guard on the whole image: ~20 MB)."""
+    noisy, denoised, variance = _guard_case(600, 500)
+    weights = np.empty((600, 500, 1), np.float32)
+    peak = _traced_peak(lambda: guard_in_place(noisy, denoised, variance, weights, 2e6))
+    assert peak <= 2e6 * 1.1
+    whole = _traced_peak(lambda: guard(clean_render(noisy), denoised, variance))
+    assert whole > 10 * peak
 
 
 def test_zero_variance_keeps_the_render_and_infinite_variance_the_denoiser() -> None:

@@ -1,0 +1,32 @@
+"""Large freed blocks go back to the operating system at once, so resident memory follows the memory in use.
+
+glibc's malloc serves a request of at least its *mmap threshold* with a mapping of its own, unmapped
+when it is freed; smaller requests come from the heap, whose freed gaps stay resident. The threshold
+starts at 128 KiB and, by default, rises to the size of every mapped block freed, up to 32 MiB. A
+tiled denoiser's temporaries are a few to tens of MiB and change size from layer to layer and from
+tile to tile: once the threshold has risen they come from the heap, and its gaps add up to about
+twice the memory in use (``benchmarks/denoise_memory.py --parts calibrate`` measures a tile with
+and without this setting). :func:`fix_mmap_threshold` fixes the threshold, which also stops it
+moving. The price is a fresh page for every page of a large block the process touches (page
+faults: system time).
+"""
+from __future__ import annotations
+
+import ctypes
+import platform
+
+M_MMAP_THRESHOLD = -3  # mallopt's parameter number (malloc.h)
+DEFAULT_THRESHOLD = 2**20
+
+
+def fix_mmap_threshold(threshold: int = DEFAULT_THRESHOLD) -> bool:
+    """Serve every allocation of at least ``threshold`` bytes from a mapping of its own, returned
+    to the system when freed, for the rest of this process (all threads). True when set; False
+    where the C library is not glibc (nothing is changed)."""
+    if platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
+        return False
+    try:
+        libc = ctypes.CDLL(None)
+        return bool(libc.mallopt(ctypes.c_int(M_MMAP_THRESHOLD), ctypes.c_int(int(threshold))))
+    except (OSError, AttributeError):
+        return False
