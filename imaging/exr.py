@@ -3,6 +3,11 @@
 Layout: images are HxWx3 float32 (linear radiance for RGB). Extra layers are stored as
 ``<layer>.R/G/B`` (or ``.X/Y/Z`` for normals), e.g. ``albedo.R``, ``normal.X``. Metadata values
 (str, int or float) go into the EXR header under their own names.
+
+Files are written a block of rows at a time through OpenEXR's scanline writer
+(``OpenEXR.OutputFile``, which takes rows in pieces), so the planes made for the file stay within
+a bound at any image size: ``OpenEXR.File`` writes whole contiguous planes only (and reads a
+strided view's memory as if it were contiguous). The bytes are those ``OpenEXR.File`` writes.
 """
 from __future__ import annotations
 
@@ -12,14 +17,16 @@ import io
 import os
 import sys
 import threading
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import Imath
 import numpy as np
 import OpenEXR
 
 from imaging.atomic_io import atomic_path
+from imaging.blocks import DEFAULT_BLOCK_BYTES, row_blocks
 from imaging.errors import ExrError
 
 XYZ_LAYERS = ("normal", "sh_normal", "nrm")
@@ -27,6 +34,10 @@ HALF_MAX = 65504.0  # largest finite float16
 EXR_MAGIC = b"\x76\x2f\x31\x01"
 _LIBC = ctypes.CDLL(None)
 _QUIET_LOCK = threading.Lock()
+CONVERT_BYTES_PER_PIXEL = 16  # plane(): one channel's finite mask, clip and cast for float16
+_PIXEL_TYPES = {np.dtype(np.uint32): Imath.PixelType.UINT, np.dtype(np.float16): Imath.PixelType.HALF,
+                np.dtype(np.float32): Imath.PixelType.FLOAT}
+RowSource = Callable[[int, int], np.ndarray]  # rows(y0, y1) of a channel, contiguous, its pixel type
 _STANDARD_KEYS = {"channels", "compression", "dataWindow", "displayWindow", "lineOrder",
                   "pixelAspectRatio", "screenWindowCenter", "screenWindowWidth", "type"}
 
@@ -63,37 +74,67 @@ def plane(values: np.ndarray, half: bool) -> np.ndarray:
     return np.ascontiguousarray(saturated, dtype=np.float16)
 
 
+def _column(img: np.ndarray, index: int, half: bool) -> tuple[np.dtype, RowSource]:
+    """Channel ``index`` of an HxWxC image as the chunked writer takes it: its pixel type and its
+    rows, converted by :func:`plane` one block at a time."""
+    return np.dtype(np.float16 if half else np.float32), lambda y0, y1: plane(img[y0:y1, :, index], half)
+
+
+def write_scanlines(path: str | Path, attributes: Mapping[str, object], width: int, height: int,
+                    channels: Mapping[str, tuple[np.dtype, RowSource]],
+                    max_bytes: float = DEFAULT_BLOCK_BYTES) -> None:
+    """Write a single-part scanline EXR to ``path`` a block of rows at a time, each block's
+    planes within ``max_bytes``. ``attributes``: header values as OpenEXR's scanline writer takes
+    them (``Imath`` objects, bytes for strings, int, float); ``channels``: name -> (pixel type:
+    float16, float32 or uint32; ``rows(y0, y1)`` giving those rows as a contiguous
+    (y1-y0)xW array of that type). Not atomic: callers write to a temporary path. Raises what
+    OpenEXR raises (OSError, TypeError)."""
+    header = OpenEXR.Header(width, height)
+    header.update(attributes)
+    header["channels"] = {name: Imath.Channel(Imath.PixelType(_PIXEL_TYPES[dtype]))
+                          for name, (dtype, _) in channels.items()}
+    per_pixel = sum(dtype.itemsize for dtype, _ in channels.values()) + CONVERT_BYTES_PER_PIXEL
+    out = OpenEXR.OutputFile(str(path), header)
+    try:
+        for rows in row_blocks(height, width, per_pixel, max_bytes):
+            out.writePixels({name: rows_of(rows.start, rows.stop) for name, (_, rows_of) in channels.items()},
+                            rows.stop - rows.start)
+    finally:
+        out.close()
+
+
 def write_exr(
     path: str | Path,
     rgb: np.ndarray,
     layers: Mapping[str, np.ndarray] | None = None,
     metadata: Mapping[str, str | int | float] | None = None,
     half: bool = False,
+    max_bytes: float = DEFAULT_BLOCK_BYTES,
 ) -> None:
     """Write an EXR atomically (ZIP compression), float32 or, with ``half``, float16 pixels
-    (finite values beyond the float16 range saturate at +-65504)."""
+    (finite values beyond the float16 range saturate at +-65504), a block of rows at a time:
+    the planes made for the file stay within ``max_bytes`` (at least one row)."""
     path = Path(path)
     rgb = _check_image("RGB", rgb, None)
-    channels: dict[str, np.ndarray] = {}
-    for c, suffix in enumerate("RGB"):
-        channels[suffix] = plane(rgb[:, :, c], half)
+    channels = {suffix: _column(rgb, c, half) for c, suffix in enumerate("RGB")}
     for layer, img in (layers or {}).items():
         img = _check_image(layer, img, rgb.shape)
         for c, suffix in enumerate(layer_suffixes(layer)):
-            channels[f"{layer}.{suffix}"] = plane(img[:, :, c], half)
-    header: dict[str, object] = {"compression": OpenEXR.ZIP_COMPRESSION}
+            channels[f"{layer}.{suffix}"] = _column(img, c, half)
+    attributes: dict[str, object] = {"compression": Imath.Compression(Imath.Compression.ZIP_COMPRESSION),
+                                     "type": b"scanlineimage"}  # as OpenEXR.File writes it
     for key, value in (metadata or {}).items():
         if key in _STANDARD_KEYS or not isinstance(value, (str, int, float)) or isinstance(value, bool):
             raise ExrError(f"{path}: metadata {key!r} must be a non-reserved str/int/float")
-        header[key] = value
+        attributes[key] = value.encode("utf-8") if isinstance(value, str) else value
     if not path.parent.is_dir():
         raise ExrError(f"{path}: output folder does not exist")
     try:
-        with atomic_path(path) as tmp, OpenEXR.File(header, channels) as exr:
-            exr.write(str(tmp))
+        with atomic_path(path) as tmp:
+            write_scanlines(tmp, attributes, rgb.shape[1], rgb.shape[0], channels, max_bytes)
     except OSError as exc:
         raise ExrError(f"{path}: cannot write ({exc.strerror or exc})") from None
-    except RuntimeError as exc:
+    except (RuntimeError, TypeError) as exc:
         raise ExrError(f"{path}: cannot write ({str(exc).splitlines()[0]})") from None
 
 

@@ -7,7 +7,11 @@ Layer names are the prefix (``ViewLayer.Combined``, ``albedo``, Mitsuba's AOV na
 R,G,B of a part have the name ``""`` in a single-part file and the part's name in a multi-part
 one (parts named ``color``, ``albedo``, ``normal``). :func:`pick_color_layer` chooses the image to
 denoise; :func:`replace_layer` puts a result back in its place, keeping every other channel,
-part and attribute and the channel's pixel type (float16 saturates at +-65504).
+part and attribute and the channel's pixel type (float16 saturates at +-65504): its channels are
+:class:`ImagePlane` s, converted a block of rows at a time when the file is written. A one-part
+scanline file whose attributes are strings, numbers and the standard ones is written a block of
+rows at a time (:func:`imaging.exr.write_scanlines`, the bytes ``OpenEXR.File`` writes); other
+files (several parts, tiles, other attribute types) whole, by ``OpenEXR.File``.
 """
 from __future__ import annotations
 
@@ -16,12 +20,14 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+import Imath
 import numpy as np
 import OpenEXR
 
 from imaging.atomic_io import atomic_path
+from imaging.blocks import DEFAULT_BLOCK_BYTES
 from imaging.errors import ExrError
-from imaging.exr import check_exr_file, plane, quiet_native_output
+from imaging.exr import RowSource, check_exr_file, plane, quiet_native_output, write_scanlines
 
 COLOR_WORDS = ("color", "colour", "rgb", "rgba", "beauty", "combined", "image", "noisy image")
 ALBEDO_WORDS = ("albedo", "denoising albedo")
@@ -33,12 +39,36 @@ _COMPUTED_KEYS = ("channels", "chunkCount")  # the writer derives these from the
 _DEEP = ("deepscanline", "deeptile")
 
 
+@dataclass(frozen=True)
+class ImagePlane:
+    """Channel ``index`` of an HxWxC ``image``, stored as ``dtype`` (float16: finite values beyond
+    +-65504 saturate), made a block of rows at a time when written instead of copied whole.
+    Reads as an HxW array of ``dtype`` (``np.asarray``)."""
+
+    image: np.ndarray
+    index: int
+    dtype: np.dtype
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.image.shape[:2]
+
+    def rows(self, y0: int, y1: int) -> np.ndarray:
+        """Rows ``y0..y1`` as a contiguous array of ``dtype``."""
+        return plane(self.image[y0:y1, :, self.index], self.dtype == np.float16)
+
+    def __array__(self, dtype: Any = None, copy: bool | None = None) -> np.ndarray:
+        whole = self.rows(0, self.shape[0])
+        return whole if dtype is None else whole.astype(dtype, copy=False)
+
+
 @dataclass
 class ExrPart:
-    """One part: ``header`` as OpenEXR's binding gives it, ``channels`` name -> HxW array."""
+    """One part: ``header`` as OpenEXR's binding gives it, ``channels`` name -> HxW array (or
+    :class:`ImagePlane`)."""
 
     header: dict[str, Any]
-    channels: dict[str, np.ndarray]
+    channels: dict[str, np.ndarray | ImagePlane]
 
     @property
     def name(self) -> str:
@@ -151,23 +181,91 @@ def read_exr_file(path: str | Path) -> ExrFile:
     return ExrFile(parts, str(path))
 
 
-def write_exr_file(path: str | Path, exr: ExrFile) -> None:
+def _scanline_attributes(header: Mapping[str, Any]) -> dict[str, object] | None:
+    """A one-part scanline header as :func:`imaging.exr.write_scanlines` takes it, with the values
+    ``OpenEXR.File`` would write; None when it holds anything else (tiles, decreasing lines, an
+    attribute of another type)."""
+    out: dict[str, object] = {"type": b"scanlineimage"}  # OpenEXR.File writes it always
+    for key, value in header.items():
+        if key in (*_COMPUTED_KEYS, "name"):
+            continue
+        if key == "type":
+            if value != OpenEXR.scanlineimage:
+                return None
+            out[key] = b"scanlineimage"
+        elif key == "compression":
+            out[key] = Imath.Compression(int(value))
+        elif key == "lineOrder":
+            if value != OpenEXR.INCREASING_Y:
+                return None
+            out[key] = Imath.LineOrder(Imath.LineOrder.INCREASING_Y)
+        elif key in ("dataWindow", "displayWindow"):
+            (x0, y0), (x1, y1) = value
+            out[key] = Imath.Box2i(Imath.V2i(int(x0), int(y0)), Imath.V2i(int(x1), int(y1)))
+        elif key == "screenWindowCenter":
+            out[key] = Imath.V2f(float(value[0]), float(value[1]))
+        elif isinstance(value, str):
+            out[key] = value.encode("utf-8")
+        elif isinstance(value, float) or (isinstance(value, int) and not isinstance(value, bool)
+                                          and -2**31 <= value < 2**31):
+            out[key] = value  # float: a 32-bit float attribute, as OpenEXR.File writes a float
+        else:
+            return None
+    return out
+
+
+def _row_source(values: np.ndarray | ImagePlane) -> tuple[np.dtype, RowSource] | None:
+    if isinstance(values, ImagePlane):
+        return values.dtype, values.rows
+    if values.dtype not in (np.float16, np.float32, np.uint32):
+        return None
+    return values.dtype, lambda y0, y1: np.ascontiguousarray(values[y0:y1])
+
+
+def _write_in_blocks(tmp: Path, part: ExrPart, max_bytes: float) -> bool:
+    """Write a one-part scanline file a block of rows at a time (see the module notes); False,
+    writing nothing, when the part is not one :func:`imaging.exr.write_scanlines` reproduces."""
+    attributes = _scanline_attributes(part.header)
+    sources = {name: _row_source(values) for name, values in part.channels.items()}
+    shapes = {np.shape(values) for values in part.channels.values()}
+    if attributes is None or None in sources.values() or len(shapes) != 1 or any(
+            getattr(c, "xSampling", 1) != 1 or getattr(c, "ySampling", 1) != 1
+            for c in part.header.get("channels") or []):
+        return False
+    height, width = shapes.pop()
+    window = part.header.get("dataWindow")
+    if window is not None and (int(window[1][0]) - int(window[0][0]) + 1,
+                               int(window[1][1]) - int(window[0][1]) + 1) != (width, height):
+        return False
+    write_scanlines(tmp, attributes, width, height, sources, max_bytes)
+    return True
+
+
+def _write_whole(tmp: Path, exr: ExrFile) -> None:
+    headers = [{k: v for k, v in p.header.items() if k not in _COMPUTED_KEYS} for p in exr.parts]
+    # new dicts of contiguous arrays (the binding replaces the values of the dicts it is given)
+    channels = [{k: np.ascontiguousarray(v) for k, v in p.channels.items()} for p in exr.parts]
+    if len(exr.parts) == 1:
+        headers[0].pop("name", None)
+        out = OpenEXR.File(headers[0], channels[0])
+    else:
+        out = OpenEXR.File([OpenEXR.Part(h, c, name=p.name or f"part{i}")
+                            for i, (h, c, p) in enumerate(zip(headers, channels, exr.parts))])
+    with out:
+        out.write(str(tmp))
+
+
+def write_exr_file(path: str | Path, exr: ExrFile, max_bytes: float = DEFAULT_BLOCK_BYTES) -> None:
     """Write ``exr`` atomically with each part's header as read (compression, windows, tiling,
-    attributes); a one-part file stays single-part."""
+    attributes); a one-part file stays single-part. A one-part scanline file is written a block
+    of rows at a time, its planes within ``max_bytes`` (see the module notes)."""
     path = Path(path)
     if not path.parent.is_dir():
         raise ExrError(f"{path}: output folder does not exist")
-    headers = [{k: v for k, v in p.header.items() if k not in _COMPUTED_KEYS} for p in exr.parts]
-    channels = [dict(p.channels) for p in exr.parts]  # copies: the binding replaces their values
     try:
-        if len(exr.parts) == 1:
-            headers[0].pop("name", None)
-            out = OpenEXR.File(headers[0], channels[0])
-        else:
-            out = OpenEXR.File([OpenEXR.Part(h, c, name=p.name or f"part{i}")
-                                for i, (h, c, p) in enumerate(zip(headers, channels, exr.parts))])
-        with atomic_path(path) as tmp, out:
-            out.write(str(tmp))
+        with atomic_path(path) as tmp:
+            if len(exr.parts) != 1 or not _write_in_blocks(tmp, exr.parts[0], max_bytes):
+                _write_whole(tmp, exr)
     except OSError as exc:
         raise ExrError(f"{path}: cannot write ({exc.strerror or exc})") from None
     except (RuntimeError, TypeError, ValueError) as exc:
@@ -228,14 +326,15 @@ def find_aux_layer(exr: ExrFile, words: tuple[str, ...], color: Layer, kinds: tu
 def replace_layer(exr: ExrFile, layer: Layer, image: np.ndarray,
                   attributes: Mapping[str, str | int | float] | None = None) -> ExrFile:
     """A copy of ``exr`` with ``layer``'s channels replaced by HxWxC ``image`` (stored in the
-    channels' own pixel type) and ``attributes`` added to its part's header."""
+    channels' own pixel type, as :class:`ImagePlane` s of it: ``image`` is not copied) and
+    ``attributes`` added to its part's header."""
     part = exr.parts[layer.part]
     if image.shape[:2] != np.shape(part.channels[layer.channels[0]]) or image.shape[2] != len(layer.channels):
         raise ExrError(f"{exr.path}: image of shape {image.shape} does not fit layer {layer.name!r}")
-    half = exr.is_half(layer)
+    dtype = np.dtype(np.float16 if exr.is_half(layer) else np.float32)
     channels = dict(part.channels)
     for i, name in enumerate(layer.channels):
-        channels[name] = plane(image[:, :, i], half)
+        channels[name] = ImagePlane(image, i, dtype)
     header = {**part.header, **(attributes or {})}
     parts = list(exr.parts)
     parts[layer.part] = ExrPart(header, channels)

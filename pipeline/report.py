@@ -3,22 +3,33 @@
 
 The comparison shows the images side by side (noisy | ours | OIDN | reference) and below them
 zoomed crops of the regions where our result has the largest error against the reference (or,
-without a reference, where it differs most from the noisy input).
+without a reference, where it differs most from the noisy input). It is made and written a band
+of rows at a time (:func:`write_comparison`), the file the whole sheet gives: the sheet is never
+whole in memory, the error map one band of crop-size rows at a time (float64, about 2 bytes per
+image pixel with the default crop of a quarter of the shorter side).
 """
 from __future__ import annotations
 
 import html
+from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from PIL import Image, ImageDraw
+from PIL import Image, ImageDraw, ImageFont
 
+from imaging.atomic_io import atomic_path
+from imaging.blocks import DEFAULT_BLOCK_BYTES, row_blocks
 from imaging.metrics import tonemap
-from imaging.png import save_png, to_display
+from imaging.png import DISPLAY_BYTES_PER_VALUE, FILTER_BYTES_PER_VALUE, PngWriter, save_png, to_display
 from pipeline.viewer import Page, Table, ViewerRow, ViewerSet, details, flip_map
 
 LABEL_H = 16
+BACKGROUND, LABEL_COLOUR, BOX_COLOUR = (20, 20, 20), (235, 235, 235), (255, 80, 40)
+ERROR_BYTES_PER_PIXEL = 128  # error_rows: float64 tonemaps of two RGB images (96 measured)
+SHEET_BYTES_PER_PIXEL = 8 + 3 * FILTER_BYTES_PER_VALUE  # a band: Pillow's RGB, its array, the PNG filter
+_FONT = ImageFont.load_default()  # what ImageDraw.text uses when given none
 
 
 def worst_regions(error: np.ndarray, size: int, count: int = 2) -> list[tuple[int, int]]:
@@ -27,10 +38,12 @@ def worst_regions(error: np.ndarray, size: int, count: int = 2) -> list[tuple[in
     h, w = error.shape
     size = max(1, min(size, h, w))
     step = max(1, size // 2)
-    cand = []
-    for y in range(0, max(1, h - size + 1), step):
-        for x in range(0, max(1, w - size + 1), step):
-            cand.append((float(error[y:y + size, x:x + size].sum()), y, x))
+    cand = [(float(error[y:y + size, x:x + size].sum()), y, x)
+            for y in range(0, max(1, h - size + 1), step) for x in range(0, max(1, w - size + 1), step)]
+    return _pick(cand, size, count)
+
+
+def _pick(cand: list[tuple[float, int, int]], size: int, count: int) -> list[tuple[int, int]]:
     cand.sort(reverse=True)
     picked: list[tuple[int, int]] = []
     for _, y, x in cand:
@@ -41,33 +54,132 @@ def worst_regions(error: np.ndarray, size: int, count: int = 2) -> list[tuple[in
     return picked
 
 
+def error_rows(image: np.ndarray, other: np.ndarray, rows: slice) -> np.ndarray:
+    """``rows`` of the comparison's error map: |tonemap(image) - tonemap(other)| averaged over the
+    channels, float64 (each pixel's value does not depend on the rows computed with it)."""
+    return np.abs(tonemap(image[rows]) - tonemap(other[rows])).mean(axis=2)
+
+
+def worst_regions_of(image: np.ndarray, other: np.ndarray, size: int, count: int = 2,
+                     max_bytes: float = DEFAULT_BLOCK_BYTES) -> list[tuple[int, int]]:
+    """:func:`worst_regions` of the error map of ``image`` against ``other`` (:func:`error_rows`)
+    without the whole map: one band of ``size`` rows at a time, each window summed over the same
+    values with the same shape and strides as in the whole map (so the same sums, bit for bit),
+    the band's rows computed in blocks within ``max_bytes``."""
+    h, w = image.shape[:2]
+    size = max(1, min(size, h, w))
+    step = max(1, size // 2)
+    band = np.empty((size, w))
+    cand, start = [], None
+    for y in range(0, max(1, h - size + 1), step):
+        keep = 0 if start is None else max(0, start + size - y)  # rows shared with the last band
+        band[:keep] = band[size - keep:]
+        for rows in row_blocks(size - keep, w, ERROR_BYTES_PER_PIXEL, max_bytes):
+            band[keep + rows.start:keep + rows.stop] = error_rows(
+                image, other, slice(y + keep + rows.start, y + keep + rows.stop))
+        cand += [(float(band[:, x:x + size].sum()), y, x) for x in range(0, max(1, w - size + 1), step)]
+        start = y
+    return _pick(cand, size, count)
+
+
+@dataclass(frozen=True)
+class _Sheet:
+    """Where everything goes on a comparison sheet (:func:`comparison_bands`)."""
+
+    names: list[str]
+    h: int
+    w: int
+    crop: int
+    zoom: int
+    regions: list[tuple[int, int]]
+
+    @property
+    def zh(self) -> int:
+        return min(self.crop, self.h) * self.zoom
+
+    @property
+    def size(self) -> tuple[int, int]:
+        return self.w * len(self.names), LABEL_H + self.h + len(self.regions) * self.zh
+
+
+def _zoom_rows(image: np.ndarray, sheet: _Sheet, region: tuple[int, int], z0: int, z1: int) -> np.ndarray:
+    """Rows ``z0..z1`` of a region's zoomed crop: its pixels repeated ``zoom`` times each way
+    (nearest neighbour), black beyond the image, at most ``w`` wide."""
+    y, x = region
+    zoom, cw = sheet.zoom, min(sheet.crop, sheet.w)
+    p0, p1 = z0 // zoom, (z1 - 1) // zoom + 1  # rows of the crop
+    patch = np.zeros((p1 - p0, cw, 3), np.uint8)
+    inside = image[y + p0:min(sheet.h, y + p1), x:min(sheet.w, x + cw)]
+    patch[:len(inside), :inside.shape[1]] = to_display(inside)
+    zoomed = np.repeat(np.repeat(patch, zoom, axis=0), zoom, axis=1)
+    return zoomed[z0 - p0 * zoom:z1 - p0 * zoom, :min(sheet.w, cw * zoom)]
+
+
+def _band(images: dict[str, np.ndarray], sheet: _Sheet, r0: int, r1: int) -> np.ndarray:
+    """Rows ``r0..r1`` of the sheet: the whole sheet's drawing, in its order, clipped to them
+    (what cannot reach them is skipped)."""
+    h, w, crop = sheet.h, sheet.w, sheet.crop
+    band = Image.new("RGB", (sheet.size[0], r1 - r0), BACKGROUND)
+    draw = ImageDraw.Draw(band)
+    for i, name in enumerate(sheet.names):
+        t0, t1 = max(r0, LABEL_H), min(r1, LABEL_H + h)
+        if t0 < t1:
+            band.paste(Image.fromarray(to_display(images[name][t0 - LABEL_H:t1 - LABEL_H])), (i * w, t0 - r0))
+        _, top, _, bottom = draw.textbbox((i * w + 3, 2), name, font=_FONT)
+        if top - 1 < r1 and bottom + 1 > r0:
+            draw.text((i * w + 3, 2 - r0), name, fill=LABEL_COLOUR, font=_FONT)
+        for j, (y, x) in enumerate(sheet.regions):
+            top = LABEL_H + h + j * sheet.zh
+            z0, z1 = max(r0, top), min(r1, top + sheet.zh)
+            if z0 < z1:
+                zoomed = _zoom_rows(images[name], sheet, (y, x), z0 - top, z1 - top)
+                band.paste(Image.fromarray(zoomed), (i * w, z0 - r0))
+            if LABEL_H + y - 1 < r1 and LABEL_H + y + min(crop, h) + 1 > r0:  # a 1-row box draws 3
+                draw.rectangle((i * w + x, LABEL_H + y - r0, i * w + x + min(crop, w) - 1,
+                                LABEL_H + y + min(crop, h) - 1 - r0), outline=BOX_COLOUR)
+    return np.asarray(band)
+
+
+def comparison_bands(images: dict[str, np.ndarray], focus: str, against: str, crop: int = 0,
+                     zoom_width: int = 0, max_bytes: float = DEFAULT_BLOCK_BYTES
+                     ) -> tuple[tuple[int, int], Iterator[np.ndarray]]:
+    """The comparison sheet (:func:`comparison_image`) as its (width, height) and its rows, a
+    band of uint8 rows at a time in order, each band's temporaries within ``max_bytes`` (at least
+    one row): the sheet is never whole in memory. The regions are found first
+    (:func:`worst_regions_of`: its band of the error map besides)."""
+    names = list(images)
+    h, w = next(iter(images.values())).shape[:2]
+    crop = crop or max(8, min(h, w) // 4)
+    regions = worst_regions_of(images[focus], images[against], crop, max_bytes=max_bytes)
+    sheet = _Sheet(names, h, w, crop, max(1, (zoom_width or w) // max(crop, 1)), regions)
+    width, height = sheet.size
+    per_pixel = SHEET_BYTES_PER_PIXEL + DISPLAY_BYTES_PER_VALUE * 3 / len(names)
+    return sheet.size, (_band(images, sheet, rows.start, rows.stop)
+                        for rows in row_blocks(height, width, per_pixel, max_bytes))
+
+
 def comparison_image(images: dict[str, np.ndarray], focus: str, against: str,
                      crop: int = 0, zoom_width: int = 0) -> np.ndarray:
     """HxWx3 uint8 sheet: labelled images in a row, then a row of zoomed crops per region.
 
     ``focus``/``against`` name the two images whose tonemapped difference picks the regions.
+    Whole in memory: :func:`write_comparison` writes it a band of rows at a time.
     """
-    names = list(images)
-    h, w = next(iter(images.values())).shape[:2]
-    crop = crop or max(8, min(h, w) // 4)
-    error = np.abs(tonemap(images[focus]) - tonemap(images[against])).mean(axis=2)
-    regions = worst_regions(error, crop)
-    zoom = max(1, (zoom_width or w) // max(crop, 1))
-    zh = min(crop, h) * zoom
-    sheet = Image.new("RGB", (w * len(names), LABEL_H + h + len(regions) * zh), (20, 20, 20))
-    draw = ImageDraw.Draw(sheet)
-    for i, name in enumerate(names):
-        tile = Image.fromarray(to_display(images[name]))
-        sheet.paste(tile, (i * w, LABEL_H))
-        draw.text((i * w + 3, 2), name, fill=(235, 235, 235))
-        for j, (y, x) in enumerate(regions):
-            box = (x, y, x + min(crop, w), y + min(crop, h))
-            patch = tile.crop(box)
-            zoomed = patch.resize((patch.width * zoom, patch.height * zoom), Image.NEAREST)
-            sheet.paste(zoomed.crop((0, 0, min(w, zoomed.width), zh)), (i * w, LABEL_H + h + j * zh))
-            draw.rectangle((i * w + x, LABEL_H + y, i * w + box[2] - 1, LABEL_H + box[3] - 1),
-                           outline=(255, 80, 40))
-    return np.asarray(sheet)
+    _, bands = comparison_bands(images, focus, against, crop, zoom_width)
+    return np.concatenate(list(bands))
+
+
+def write_comparison(path: Path, images: dict[str, np.ndarray], focus: str, against: str,
+                     crop: int = 0, zoom_width: int = 0, max_bytes: float = DEFAULT_BLOCK_BYTES) -> Path:
+    """Write :func:`comparison_image` as a PNG atomically, a band of rows at a time (the bytes
+    :func:`imaging.png.save_png` writes for the whole sheet)."""
+    (width, height), bands = comparison_bands(images, focus, against, crop, zoom_width, max_bytes)
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        writer = PngWriter(fh, width, height)
+        for band in bands:
+            writer.write(band)
+        writer.close()
+    return path
 
 
 LABELS = {"noisy": "noisy", "denoised": "ours", "oidn": "OIDN", "reference": "reference"}
@@ -76,16 +188,17 @@ METRIC_COLUMNS = [("psnr", "PSNR dB", "high"), ("ssim", "SSIM", "high"), ("relms
 
 
 def run_page(metrics: dict[str, Any], images: dict[str, np.ndarray],
-             guard_map: np.ndarray | None = None) -> Page:
+             guard_map: np.ndarray | None = None, max_bytes: float = DEFAULT_BLOCK_BYTES) -> Page:
     """The report of one render-and-denoise run: the viewer over noisy / ours / OIDN / reference
     (+ FLIP maps against the reference, + the noise guard's weight map), the metrics table, the
     run's timings, model and settings. ``images``: name -> HxWx3 linear radiance, names as in
-    :data:`LABELS`; ``metrics``: the run's metrics.json dict."""
+    :data:`LABELS`; ``metrics``: the run's metrics.json dict. Images are embedded a block of rows
+    at a time within ``max_bytes``; the FLIP maps are computed on whole images."""
     w, h = metrics["resolution"]
     model = metrics["model"]
     page = Page(f"{Path(str(metrics['scene'])).name}: denoising report",
                 f"{w}x{h} at {metrics['spp']} spp, model {model['name']}, Mitsuba {metrics['mitsuba']} "
-                f"({metrics['variant']})")
+                f"({metrics['variant']})", max_bytes)
     reference = images.get("reference")
     ids = {name: page.radiance(img) for name, img in images.items()}
     rows = [ViewerRow(LABELS.get(name, name), ids[name],
@@ -158,16 +271,18 @@ def _reference_text(reference: dict[str, Any] | None) -> str:
 
 
 def write_report(out: Path, metrics: dict[str, Any], images: dict[str, np.ndarray],
-                 guard_map: np.ndarray | None = None) -> Path:
+                 guard_map: np.ndarray | None = None, max_bytes: float = DEFAULT_BLOCK_BYTES) -> Path:
     """Write ``out/report.html`` (:func:`run_page`), self-contained."""
-    return run_page(metrics, images, guard_map).write(out / "report.html")
+    return run_page(metrics, images, guard_map, max_bytes).write(out / "report.html")
 
 
-def write_previews(out: Path, images: dict[str, np.ndarray]) -> list[Path]:
-    """Tonemapped PNG of each image: ``out/<name>.png``."""
+def write_previews(out: Path, images: dict[str, np.ndarray],
+                   max_bytes: float = DEFAULT_BLOCK_BYTES) -> list[Path]:
+    """Tonemapped PNG of each image: ``out/<name>.png`` (:func:`imaging.png.save_png`, a block of
+    rows at a time within ``max_bytes``)."""
     paths = []
     for name, img in images.items():
         path = out / f"{name}.png"
-        save_png(path, img)
+        save_png(path, img, max_bytes)
         paths.append(path)
     return paths

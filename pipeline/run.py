@@ -3,6 +3,8 @@
 Outputs in ``out``: noisy.exr, denoised.exr (+ oidn.exr, reference.exr), a PNG preview of each,
 comparison.png, metrics.json (written last: a run without it did not finish; a re-run into the
 same folder deletes the old one first), report.html and config.json (the run's settings).
+Writing them, the metrics and the report go a block of rows at a time (:func:`output_bytes` of
+the ``--max-memory-mb`` budget), so their scratch memory does not grow with the image.
 """
 from __future__ import annotations
 
@@ -16,10 +18,11 @@ from typing import Any
 import numpy as np
 
 from imaging.atomic_io import TMP_PREFIX, json_safe, write_json_atomic
+from imaging.blocks import DEFAULT_BLOCK_BYTES
 from imaging.errors import DenoiserError
 from imaging.exr import write_exr
+from imaging.metrics import percentile
 from imaging.peak_rss import PeakRSS
-from imaging.png import save_png
 from imaging.render import RenderResult
 from pipeline.budget import BudgetPlan, budget_candidates, plan_run
 from pipeline.denoise import DenoiseResult, Denoiser
@@ -27,7 +30,7 @@ from pipeline.evaluation import (RenderSettings, aovs_for, check_reference, deno
                                  render_input, render_reference, score)
 from pipeline.noise_guard import DEFAULT_PIVOT_SPP, DEFAULT_RADIUS, strength_for
 from pipeline.oidn import oidn_available
-from pipeline.report import comparison_image, write_previews, write_report
+from pipeline.report import write_comparison, write_previews, write_report
 
 
 @dataclass
@@ -46,10 +49,18 @@ class RunConfig:
     curves: str | None = None
 
 
-def image_stats(img: np.ndarray) -> dict[str, float]:
-    """Summary statistics of an HxWx3 radiance image (used when there is no reference)."""
+def image_stats(img: np.ndarray, max_bytes: float = DEFAULT_BLOCK_BYTES) -> dict[str, float]:
+    """Summary statistics of an HxWx3 radiance image (used when there is no reference); p99 is
+    ``np.percentile``'s value without its copy of the image (:func:`imaging.metrics.percentile`,
+    blocks within ``max_bytes``)."""
     return {"mean": float(img.mean()), "min": float(img.min()), "max": float(img.max()),
-            "p99": float(np.percentile(img, 99))}
+            "p99": percentile(img, 99, max_bytes)}
+
+
+def output_bytes(cfg: RenderSettings) -> float:
+    """Temporaries of a block of rows in the output stages (writing, metrics, report): an eighth
+    of the memory budget, at most :data:`imaging.blocks.DEFAULT_BLOCK_BYTES`."""
+    return min(DEFAULT_BLOCK_BYTES, cfg.max_memory_mb * 2**20 / 8)
 
 
 def _check_out(out: Path) -> None:
@@ -169,13 +180,15 @@ def _compare(run: _Run) -> None:
 
 
 def _write_images(run: _Run) -> None:
-    out = Path(run.cfg.out)
+    """Every image as EXR and PNG, and the comparison sheet, a block of rows at a time
+    (:func:`output_bytes`)."""
+    out, max_bytes = Path(run.cfg.out), output_bytes(run.cfg.render)
     meta = {"scene": Path(run.cfg.render.scene).stem, "spp": run.spp, "seed": run.cfg.render.seed}
     for name, img in run.images.items():
-        write_exr(out / f"{name}.exr", img, metadata={**meta, "image": name})
-    write_previews(out, run.images)
+        write_exr(out / f"{name}.exr", img, metadata={**meta, "image": name}, max_bytes=max_bytes)
+    write_previews(out, run.images, max_bytes)
     focus_against = ("denoised", "reference") if run.reference is not None else ("denoised", "noisy")
-    save_png(out / "comparison.png", comparison_image(run.images, *focus_against))
+    write_comparison(out / "comparison.png", run.images, *focus_against, max_bytes=max_bytes)
 
 
 def _metrics(run: _Run) -> dict[str, Any]:
@@ -204,7 +217,7 @@ def _metrics(run: _Run) -> dict[str, Any]:
                               if n != "reference"}
         metrics["note"] = "quality against the reference (PSNR/SSIM tonemapped x/(1+x), gamma 1/2.2)"
     else:
-        metrics["stats"] = {n: image_stats(img) for n, img in run.images.items()}
+        metrics["stats"] = {n: image_stats(img, output_bytes(cfg)) for n, img in run.images.items()}
         metrics["note"] = "no reference given: timings and image statistics only"
     return json_safe(metrics)
 
@@ -220,7 +233,7 @@ def run(cfg: RunConfig, log: Callable[[str], None] = lambda s: None) -> dict[str
     _write_images(state)
     state.timings["total_s"] = time.perf_counter() - state.started
     metrics = _metrics(state)
-    write_report(Path(cfg.out), metrics, state.images, state.result.guard_map)
+    write_report(Path(cfg.out), metrics, state.images, state.result.guard_map, output_bytes(cfg.render))
     write_json_atomic(Path(cfg.out) / "metrics.json", metrics)
     return metrics
 

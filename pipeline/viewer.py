@@ -16,7 +16,10 @@ import html
 import json
 import math
 import re
+import tempfile
+import weakref
 import zlib
+from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -24,10 +27,14 @@ from typing import Any
 
 import numpy as np
 
-from imaging.atomic_io import write_text_atomic
+from imaging.atomic_io import atomic_path
+from imaging.blocks import DEFAULT_BLOCK_BYTES, row_blocks
 from imaging.exr import HALF_MAX
 from imaging.metrics import tonemap
 
+RADIANCE_BYTES_PER_VALUE = 16  # Page.radiance / scalar: float32 and float16 temporaries per value
+SPOOL_MEMORY = 8 * 2**20  # a page's deflated images stay in memory up to this, then go to a file
+BASE64_PIECE = 3 * 2**16  # deflated bytes encoded at a time when the page is written (a multiple of 3)
 COLUMNS = [{"id": "image", "label": "image", "key": "i"},
            {"id": "flip", "label": "FLIP", "key": "f"},
            {"id": "relse", "label": "rel. squared error", "key": "r"}]
@@ -93,45 +100,82 @@ def flip_map(image: np.ndarray, reference: np.ndarray) -> np.ndarray:
     return np.asarray(error, np.float32).reshape(image.shape[:2])
 
 
-class Page:
-    """An HTML report being put together: image sets for the viewer, then HTML sections."""
+@dataclass(frozen=True)
+class _Embedded:
+    """An embedded image: its tag's attributes and where its deflated bytes lie in the spool."""
 
-    def __init__(self, title: str, subtitle: str = "") -> None:
+    ident: str
+    attributes: str
+    offset: int
+    length: int
+
+
+def _half_bytes(rgb: np.ndarray, byte: int) -> bytes:
+    """Byte ``byte`` (0: low, 1: high) of each value of ``rgb`` as little-endian float16 (finite
+    values beyond 65504 saturate, NaN -> 0)."""
+    rgb = np.asarray(rgb, np.float32)
+    half = np.clip(np.nan_to_num(rgb, nan=0.0, posinf=HALF_MAX, neginf=-HALF_MAX),
+                   -HALF_MAX, HALF_MAX).astype("<f2")
+    return half.view(np.uint8).reshape(-1, 2)[:, byte].tobytes()
+
+
+class Page:
+    """An HTML report being put together: image sets for the viewer, then HTML sections.
+
+    Embedded images are deflated a block of rows at a time into a spool (memory while small, a
+    temporary file beyond ``SPOOL_MEMORY``) and :meth:`write` streams the page from it, base64 a
+    piece at a time: neither the images' bytes nor the page is ever whole in memory there
+    (:meth:`html` builds the whole text)."""
+
+    def __init__(self, title: str, subtitle: str = "", max_bytes: float = DEFAULT_BLOCK_BYTES) -> None:
         self.title, self.subtitle = title, subtitle
         self.sets: list[ViewerSet] = []
         self.sections: list[str] = []
-        self._images: list[str] = []
+        self.max_bytes = max_bytes
+        self._images: list[_Embedded] = []
+        self._spool = tempfile.SpooledTemporaryFile(max_size=SPOOL_MEMORY)
+        weakref.finalize(self, self._spool.close)
         self._max_h = 0
 
-    def _embed(self, raw: bytes, shape: tuple[int, int, int], dtype: str) -> str:
+    def _embed(self, pieces: Iterator[bytes], shape: tuple[int, int, int], dtype: str) -> str:
+        """Deflate ``pieces`` (as ``zlib.compress(b"".join(pieces), 6)`` would) into the spool."""
         ident = str(len(self._images))
         h, w, c = shape
-        data = base64.b64encode(zlib.compress(raw, 6)).decode("ascii")
-        self._images.append(f'<script type="application/octet-stream" id="img-{ident}" data-w="{w}" '
-                            f'data-h="{h}" data-c="{c}" data-dtype="{dtype}">{data}</script>')
+        deflate = zlib.compressobj(6)
+        self._spool.seek(0, 2)
+        offset = self._spool.tell()
+        for piece in pieces:
+            self._spool.write(deflate.compress(piece))
+        self._spool.write(deflate.flush())
+        self._images.append(_Embedded(ident, f'data-w="{w}" data-h="{h}" data-c="{c}" data-dtype="{dtype}"',
+                                      offset, self._spool.tell() - offset))
         self._max_h = max(self._max_h, h)
         return ident
 
+    def _blocks(self, image: np.ndarray, bytes_per_value: float) -> Iterator[slice]:
+        width = image.shape[1] * (image.shape[2] if image.ndim == 3 else 1)
+        return row_blocks(image.shape[0], width, bytes_per_value, self.max_bytes)
+
     def radiance(self, rgb: np.ndarray) -> str:
         """Embed HxWx3 linear radiance (float16: finite values beyond 65504 saturate, NaN -> 0);
-        return its id."""
-        rgb = np.asarray(rgb, np.float32)
+        return its id. The low bytes of all values, then the high bytes (it deflates better)."""
+        rgb = np.asarray(rgb)
         if rgb.ndim != 3 or rgb.shape[2] != 3:
             raise ValueError(f"expected an HxWx3 image, got shape {rgb.shape}")
-        half = np.clip(np.nan_to_num(rgb, nan=0.0, posinf=HALF_MAX, neginf=-HALF_MAX),
-                       -HALF_MAX, HALF_MAX).astype("<f2")
-        planes = half.view(np.uint8).reshape(-1, 2).T  # low bytes, then high bytes: deflates better
-        return self._embed(np.ascontiguousarray(planes).tobytes(), rgb.shape, "f16")
+        pieces = (_half_bytes(rgb[rows], byte) for byte in (0, 1)
+                  for rows in self._blocks(rgb, RADIANCE_BYTES_PER_VALUE))
+        return self._embed(pieces, rgb.shape, "f16")
 
     def scalar(self, values: np.ndarray) -> str:
         """Embed an HxW map of values in [0, 1] (8 bits); return its id."""
-        values = np.asarray(values, np.float32)
+        values = np.asarray(values)
         if values.ndim == 3 and values.shape[2] == 1:
             values = values[:, :, 0]
         if values.ndim != 2:
             raise ValueError(f"expected an HxW map, got shape {values.shape}")
-        quantised = np.round(np.clip(np.nan_to_num(values), 0.0, 1.0) * 255).astype(np.uint8)
-        return self._embed(quantised.tobytes(), (*values.shape, 1), "u8")
+        pieces = (np.round(np.clip(np.nan_to_num(np.asarray(values[rows], np.float32)), 0.0, 1.0) * 255)
+                  .astype(np.uint8).tobytes() for rows in self._blocks(values, RADIANCE_BYTES_PER_VALUE))
+        return self._embed(pieces, (*values.shape, 1), "u8")
 
     def add_set(self, viewer_set: ViewerSet) -> None:
         self.sets.append(viewer_set)
@@ -140,20 +184,48 @@ class Page:
         """An HTML section below the viewer; ``body`` is HTML (escape text with :func:`html.escape`)."""
         self.sections.append(f"<section><h2>{html.escape(title)}</h2>{body}</section>")
 
-    def html(self) -> str:
+    def _image_text(self) -> Iterator[str]:
+        """The embedded images' script tags, one line each, a piece at a time."""
+        for i, image in enumerate(self._images):
+            if i:
+                yield "\n"
+            yield f'<script type="application/octet-stream" id="img-{image.ident}" {image.attributes}>'
+            self._spool.seek(image.offset)
+            left = image.length
+            while left:
+                piece = self._spool.read(min(left, BASE64_PIECE))
+                left -= len(piece)
+                yield base64.b64encode(piece).decode("ascii")
+            yield "</script>"
+
+    def _text(self) -> Iterator[str]:
+        """The page's text in order, a piece at a time (the images streamed from the spool)."""
         payload = {"sets": [asdict(s) for s in self.sets], "columns": COLUMNS,
                    "colormaps": {name: _colormap(name) for name in ("magma", "viridis")}}
         stage_h = int(min(720, max(384, 2 * self._max_h + 2)))  # small images fit at 2x
         parts = {"CSS": _asset("viewer.css").replace("{{STAGE_H}}", str(stage_h)),
                  "TITLE": html.escape(self.title), "SUBTITLE": html.escape(self.subtitle),
                  "VIEWER": VIEWER_BLOCK if self.sets else "", "CONTENT": "\n".join(self.sections),
-                 "PAYLOAD": json.dumps(payload).replace("</", "<\\/"),
-                 "IMAGES": "\n".join(self._images), "JS": _asset("viewer.js")}
-        return re.sub(r"\{\{([A-Z]+)\}\}", lambda m: parts[m.group(1)], _asset("page.html"))
+                 "PAYLOAD": json.dumps(payload).replace("</", "<\\/"), "JS": _asset("viewer.js")}
+        template, at = _asset("page.html"), 0
+        for match in re.finditer(r"\{\{([A-Z]+)\}\}", template):
+            yield template[at:match.start()]
+            if match.group(1) == "IMAGES":
+                yield from self._image_text()
+            else:
+                yield parts[match.group(1)]
+            at = match.end()
+        yield template[at:]
+
+    def html(self) -> str:
+        return "".join(self._text())
 
     def write(self, path: str | Path) -> Path:
+        """Write the page atomically (UTF-8), a piece at a time."""
         path = Path(path)
-        write_text_atomic(path, self.html())
+        with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+            for piece in self._text():
+                fh.write(piece.encode("utf-8"))
         return path
 
 

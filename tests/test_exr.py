@@ -69,3 +69,52 @@ def test_write_rejects_bad_shapes_and_folders(tmp_path: Path) -> None:
     with pytest.raises(ExrError, match="output folder does not exist"):
         write_exr(tmp_path / "no" / "a.exr", np.zeros((4, 4, 3)))
     assert list(tmp_path.iterdir()) == []
+
+
+def whole_file_bytes(path: Path, rgb: np.ndarray, layers: dict, metadata: dict, half: bool) -> bytes:
+    """The file as OpenEXR.File writes it from whole planes (the writer before the row blocks)."""
+    import OpenEXR
+
+    from imaging.exr import layer_suffixes, plane
+
+    channels = {s: plane(rgb[:, :, c], half) for c, s in enumerate("RGB")}
+    for name, img in layers.items():
+        channels.update({f"{name}.{s}": plane(img[:, :, c], half) for c, s in enumerate(layer_suffixes(name))})
+    with OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, **metadata}, channels) as f:
+        f.write(str(path))
+    return path.read_bytes()
+
+
+@pytest.mark.parametrize("h, w", [(1, 1), (17, 23), (64, 3), (5, 200)])
+@pytest.mark.parametrize("half", [False, True])
+@pytest.mark.parametrize("max_bytes", [1, 5000, 64 * 2**20])  # one row per block, a few, the whole
+def test_row_blocks_write_the_whole_file_bytes(tmp_path: Path, rng, h: int, w: int, half: bool,
+                                                max_bytes: int) -> None:
+    rgb = _image(rng, h, w)
+    rgb[0, 0] = [np.inf, 1e6, -1e6]  # saturated in float16
+    layers = {"albedo": rng.random((h, w, 3)).astype(np.float32),
+              "normal": rng.normal(size=(h, w, 3)).astype(np.float32)}
+    meta = {"spp": 128, "scene": "cbox é", "render_s": 1.5}
+    write_exr(tmp_path / "x.exr", rgb, layers, meta, half=half, max_bytes=max_bytes)
+    assert (tmp_path / "x.exr").read_bytes() == whole_file_bytes(tmp_path / "w.exr", rgb, layers, meta, half)
+    img = read_exr(tmp_path / "x.exr")
+    assert img.metadata == meta and set(img.layers) == {"albedo", "normal"}
+    if not half:
+        assert np.array_equal(img.rgb, rgb) and np.array_equal(img.layers["normal"], layers["normal"])
+
+
+def test_write_exr_scratch_stays_within_its_blocks(tmp_path: Path, rng) -> None:
+    """numpy's allocations while writing a 512x512 image with two layers (whole planes: 9 MB)."""
+    import tracemalloc
+
+    rgb = rng.random((512, 512, 3), dtype=np.float32)
+    layers = {"albedo": rgb[::-1], "normal": rgb[:, ::-1]}
+    max_bytes = 256 * 2**10
+    for half in (False, True):
+        tracemalloc.start()
+        try:
+            write_exr(tmp_path / "x.exr", rgb, layers, half=half, max_bytes=max_bytes)
+            peak = tracemalloc.get_traced_memory()[1]
+        finally:
+            tracemalloc.stop()
+        assert peak < max_bytes + 64 * 2**10, (half, peak)

@@ -150,3 +150,57 @@ def test_truncated_files_and_missing_folders_are_refused(tmp_path: Path, rng: np
         read_exr_file(tmp_path / "cut_parts.exr")
     with pytest.raises(ExrError, match="output folder does not exist"):
         write_exr_file(tmp_path / "no" / "o.exr", read_exr_file(tmp_path / "ok.exr"))
+
+
+def whole_file_bytes(path: Path, exr) -> bytes:
+    """``exr`` as OpenEXR.File writes it from whole planes (the writer before the row blocks)."""
+    header = {k: v for k, v in exr.parts[0].header.items() if k not in ("channels", "chunkCount", "name")}
+    with OpenEXR.File(header, {k: np.ascontiguousarray(v) for k, v in exr.parts[0].channels.items()}) as f:
+        f.write(str(path))
+    return path.read_bytes()
+
+
+@pytest.mark.parametrize("layout", ["blender", "mitsuba", "window"])
+@pytest.mark.parametrize("max_bytes", [1, 3000, 64 * 2**20])
+def test_one_part_scanline_files_are_written_in_row_blocks(tmp_path: Path, rng: np.random.Generator,
+                                                          layout: str, max_bytes: int) -> None:
+    header: dict = {"compression": OpenEXR.ZIP_COMPRESSION, "owner": "someone", "spp": 64, "exposure": 0.25}
+    channels = blender(rng) if layout == "blender" else mitsuba_aov(rng)
+    if layout == "window":  # a data window away from the origin, inside a larger display window
+        header.update(dataWindow=(np.array([3, 5], np.int32), np.array([3 + W - 1, 5 + H - 1], np.int32)),
+                      displayWindow=(np.array([0, 0], np.int32), np.array([99, 99], np.int32)))
+    channels["id"] = rng.integers(0, 2**32, (H, W), dtype=np.uint32)
+    OpenEXR.File(header, dict(channels)).write(str(tmp_path / "in.exr"))
+    exr = read_exr_file(tmp_path / "in.exr")
+    color = pick_color_layer(exr)
+    out = replace_layer(exr, color, (rng.random((H, W, 3)) * 70000).astype(np.float32), {"denoised_by": "x"})
+    write_exr_file(tmp_path / "out.exr", out, max_bytes=max_bytes)
+    assert (tmp_path / "out.exr").read_bytes() == whole_file_bytes(tmp_path / "whole.exr", out)
+    write_exr_file(tmp_path / "same.exr", exr, max_bytes=max_bytes)
+    assert (tmp_path / "same.exr").read_bytes() == (tmp_path / "in.exr").read_bytes()
+
+
+def test_replaced_layer_is_converted_when_written(tmp_path: Path, rng: np.random.Generator) -> None:
+    """replace_layer keeps a reference to the result; writing a 512x512 file converts it a block
+    of rows at a time (whole planes of the colour layer alone: 3 MB)."""
+    import tracemalloc
+
+    from imaging.exr_layers import ImagePlane
+
+    OpenEXR.File({}, {c: np.zeros((512, 512), np.float16) for c in "RGB"}).write(str(tmp_path / "in.exr"))
+    exr = read_exr_file(tmp_path / "in.exr")
+    image = rng.random((512, 512, 3), dtype=np.float32) * 1e5
+    max_bytes = 128 * 2**10
+    tracemalloc.start()
+    try:
+        out = replace_layer(exr, pick_color_layer(exr), image)
+        write_exr_file(tmp_path / "out.exr", out, max_bytes=max_bytes)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < max_bytes + 64 * 2**10
+    plane = out.parts[0].channels["G"]
+    assert isinstance(plane, ImagePlane) and plane.dtype == np.float16 and plane.shape == (512, 512)
+    back = read_exr_file(tmp_path / "out.exr").parts[0].channels["G"]
+    assert back.dtype == np.float16 and np.array_equal(back, np.asarray(plane))
+    assert np.array_equal(back, np.minimum(image[:, :, 1], 65504).astype(np.float16))

@@ -58,3 +58,65 @@ def test_all_metrics_keys(rng) -> None:
     out = metrics.all_metrics(ref * 1.1, ref)
     assert set(out) == {"psnr", "ssim", "relmse", "smape", "flip", "hdr_flip"}
     assert all(np.isfinite(v) for v in out.values())
+
+
+def whole_image_metrics(x: np.ndarray, ref: np.ndarray) -> dict[str, float]:
+    """PSNR, SSIM, relMSE and SMAPE computed on whole images at once (as before the row blocks)."""
+    a, b = metrics.tonemap(x), metrics.tonemap(ref)
+    blur = metrics._gaussian_blur
+    mu_a, mu_b = blur(a), blur(b)
+    var_a, var_b, cov = blur(a * a) - mu_a**2, blur(b * b) - mu_b**2, blur(a * b) - mu_a * mu_b
+    c1, c2 = 0.01**2, 0.03**2
+    ssim_map = (2 * mu_a * mu_b + c1) * (2 * cov + c2) / ((mu_a**2 + mu_b**2 + c1) * (var_a + var_b + c2))
+    x64, r64 = x.astype(np.float64), ref.astype(np.float64)
+    return {"psnr": 10 * np.log10(1 / np.mean((a - b) ** 2)), "ssim": np.mean(ssim_map),
+            "relmse": np.mean((x64 - r64) ** 2 / (r64 * r64 + 0.01)),
+            "smape": np.mean(np.abs(x64 - r64) / (np.abs(x64) + np.abs(r64) + 0.01))}, ssim_map
+
+
+@pytest.mark.parametrize("h, w", [(1, 1), (3, 2), (24, 24), (61, 17)])
+@pytest.mark.parametrize("max_bytes", [1, 20000, 64 * 2**20])  # one row per block, a few, all
+def test_blocked_metrics_are_the_whole_image_ones(rng, h: int, w: int, max_bytes: int) -> None:
+    ref = (rng.random((h, w, 3)) * 10 ** rng.uniform(-2, 2, (h, w, 1))).astype(np.float32)
+    x = (ref + rng.normal(0, 0.3, ref.shape)).astype(np.float32)
+    whole, ssim_map = whole_image_metrics(x, ref)
+    got = {"psnr": metrics.psnr(x, ref, max_bytes), "ssim": metrics.ssim(x, ref, max_bytes),
+           "relmse": metrics.relmse(x, ref, max_bytes=max_bytes), "smape": metrics.smape(x, ref, max_bytes=max_bytes)}
+    for name, value in whole.items():
+        assert got[name] == pytest.approx(value, rel=1e-12), name  # sums in blocks: rounding only
+    rows = [metrics._ssim_rows(x, ref, slice(y, min(h, y + 2))) for y in range(0, h, 2)]
+    assert np.array_equal(np.concatenate(rows), ssim_map)  # every value of the SSIM map exact
+
+
+def test_blocked_metrics_scratch_stays_within_its_blocks(rng) -> None:
+    import tracemalloc
+
+    ref = rng.random((256, 256, 3), dtype=np.float32)
+    x = ref * np.float32(1.1)
+    max_bytes = 128 * 2**10
+    for metric in (metrics.psnr, metrics.ssim, metrics.relmse, metrics.smape, metrics.percentile):
+        args = (x, 99) if metric is metrics.percentile else (x, ref)
+        tracemalloc.start()
+        try:
+            metric(*args, max_bytes=max_bytes)
+            peak = tracemalloc.get_traced_memory()[1]
+        finally:
+            tracemalloc.stop()
+        # SSIM's blocks carry the blur's 10 rows around them
+        bound = max_bytes + (11 * 256 * 3 * 128 if metric is metrics.ssim else 64 * 2**10)
+        assert peak < bound, (metric.__name__, peak)
+
+
+@pytest.mark.parametrize("dtype", [np.float16, np.float32, np.float64])
+def test_percentile_is_numpys(rng, dtype: type) -> None:
+    for values in (rng.normal(size=(37, 11, 3)), np.round(rng.normal(size=(50, 7, 3)) * 2),
+                   np.abs(rng.normal(size=(1, 1, 3))), rng.random((64, 9, 3)) * 1e4):
+        values = values.astype(dtype)
+        for q in (99, 50, 0, 100, 37.5):
+            for max_bytes in (1, 10**9):
+                assert metrics.percentile(values, q, max_bytes) == np.percentile(values, q), (q, max_bytes)
+    values = rng.random((20, 5, 3)).astype(dtype)
+    values[3, 2, 1] = np.inf
+    assert metrics.percentile(values, 99) == np.percentile(values, 99)
+    values[0, 0, 0] = np.nan
+    assert np.isnan(metrics.percentile(values, 99))

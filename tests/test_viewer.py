@@ -52,6 +52,61 @@ def test_page_embeds_float16_radiance_and_8bit_maps(rng: np.random.Generator) ->
     assert "http://" not in text and "https://" not in text
 
 
+def whole_image_tags(rgb: np.ndarray, values: np.ndarray) -> list[str]:
+    """The two images' script tags as embedded from whole images (before the row blocks)."""
+    half = np.clip(np.nan_to_num(rgb.astype(np.float32), nan=0.0, posinf=65504, neginf=-65504),
+                   -65504, 65504).astype("<f2")
+    planes = np.ascontiguousarray(half.view(np.uint8).reshape(-1, 2).T).tobytes()
+    quantised = np.round(np.clip(np.nan_to_num(values.astype(np.float32)), 0, 1) * 255).astype(np.uint8)
+    h, w = values.shape
+    return [f'<script type="application/octet-stream" id="img-{i}" data-w="{w}" data-h="{h}" data-c="{c}" '
+            f'data-dtype="{dtype}">{base64.b64encode(zlib.compress(raw, 6)).decode("ascii")}</script>'
+            for i, (raw, c, dtype) in enumerate([(planes, 3, "f16"), (quantised.tobytes(), 1, "u8")])]
+
+
+@pytest.mark.parametrize("max_bytes", [1, 3000, 16 * 2**20])  # one row per block, a few, the whole
+def test_page_embeds_in_row_blocks_and_streams_the_file(tmp_path: Path, rng: np.random.Generator,
+                                                        monkeypatch: pytest.MonkeyPatch, max_bytes: int) -> None:
+    import pipeline.viewer as viewer
+
+    monkeypatch.setattr(viewer, "SPOOL_MEMORY", 2000)  # the deflated images go to a file
+    monkeypatch.setattr(viewer, "BASE64_PIECE", 3 * 100)
+    rgb = (rng.random((37, 29, 3)) * 10 ** rng.uniform(-3, 5, (37, 29, 1))).astype(np.float64)
+    rgb[0, 0] = [1e6, np.nan, -np.inf]
+    values = rng.random((37, 29)) * 1.2 - 0.1
+    page = Page("t", max_bytes=max_bytes)
+    ids = page.radiance(rgb), page.scalar(values[:, :, None])
+    page.add_set(ViewerSet("s", [ViewerRow("a", ids[0]), ViewerRow("m", ids[1], kind="weight")], ids[0]))
+    text = page.html()
+    assert "\n".join(whole_image_tags(rgb, values)) in text
+    page.write(tmp_path / "r.html")
+    assert (tmp_path / "r.html").read_bytes() == text.encode("utf-8")
+
+
+def test_page_scratch_stays_within_its_blocks(tmp_path: Path, rng: np.random.Generator,
+                                              monkeypatch: pytest.MonkeyPatch) -> None:
+    """numpy's (and Python's) allocations while embedding a 512x512 image and a map and writing
+    the page, its deflated images spooled to a file: the blocks, the deflate state and a piece of
+    base64 (the whole float16 planes alone: 1.5 MB; the page: 2 MB)."""
+    import tracemalloc
+
+    import pipeline.viewer as viewer
+
+    monkeypatch.setattr(viewer, "SPOOL_MEMORY", 1)
+    rgb = rng.random((512, 512, 3), dtype=np.float32)
+    max_bytes = 128 * 2**10
+    Page("warm-up").write(tmp_path / "w.html")  # the colour maps' imports
+    tracemalloc.start()
+    try:
+        page = Page("t", max_bytes=max_bytes)
+        page.add_set(ViewerSet("s", [ViewerRow("a", page.radiance(rgb), page.scalar(rgb[:, :, 0]))]))
+        page.write(tmp_path / "r.html")
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < max_bytes + 2**20
+
+
 def test_table_marks_the_best_cell_per_column() -> None:
     table = Table(["image", "PSNR dB", "relMSE"], [["a", 30.0, 0.1], ["b", 32.0, 0.2]],
                   better={"PSNR dB": "high", "relMSE": "low"}).html()
