@@ -102,7 +102,7 @@ def stages(den: Denoiser, width: int, height: int, repeat: int) -> dict[str, flo
     from model.noise_input import noise_channels
     from model.transfer import get_transfer
     from pipeline.denoise import count_invalid
-    from pipeline.noise_guard import blend_weight
+    from pipeline.noise_guard import guard_in_place
 
     img, var = _render(width, height)
     transfer = get_transfer(den.config.transfer)
@@ -112,9 +112,10 @@ def stages(den: Denoiser, width: int, height: int, repeat: int) -> dict[str, flo
         "count_invalid": lambda: count_invalid(img),
         "exposure": lambda: exposure_scale(img),
         "transfer": lambda: transfer.forward(torch.from_numpy(img)),
-        "noise_channels": lambda: noise_channels(img, var, transfer),
+        "noise_channels": lambda: noise_channels(img, var, transfer, den.config.noise_radius),
         "network": lambda: den.net(x),
-        "guard": lambda: blend_weight(img, out, var),
+        "guard": lambda: guard_in_place(img, out.copy(), var, np.empty((height, width, 1), np.float32),
+                                        den.max_bytes),
         "whole call": lambda: den.denoise_array(img, variance=var),
     }
     result = {}

@@ -46,8 +46,9 @@ def count_parameters(model: nn.Module) -> int:
 
 # Resident bytes of a forward pass per byte of the tensors live_channels_per_pixel counts: oneDNN's
 # reordered weights and workspaces, the allocator's slack (with imaging/allocator.py's fixed mmap
-# threshold), and for the training modules their BatchNorm copies and concatenations. A bound of
-# what benchmarks/denoise_memory.py --parts calibrate measures (results/denoise_memory.json).
+# threshold), and for the training modules
+# their BatchNorm copies and concatenations. A bound of what benchmarks/denoise_memory.py --parts
+# calibrate measures (results/denoise_memory.json).
 FOLDED_ALLOWANCE = 1.1
 MODULE_ALLOWANCE = 1.6
 

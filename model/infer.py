@@ -25,7 +25,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from imaging.tiling import Tile, run_windows
+from imaging.tiling import Core, Tile, run_windows
 from model.architectures import alignment, inference_bytes_per_pixel, receptive_radius
 from model.config import ModelConfig
 from model.noise_input import noise_channels
@@ -153,7 +153,7 @@ def _aux_window(aux: Aux, t: Tile) -> torch.Tensor:
 
 
 def denoise_image(model: nn.Module, color: np.ndarray, aux: Aux = None,
-                  core: int = 256, progress: Callable[[int, int], None] | None = None,
+                  core: Core = 256, progress: Callable[[int, int], None] | None = None,
                   variance: np.ndarray | None = None, skip_below: float | None = None,
                   max_bytes: float = DEFAULT_PASS_BYTES) -> np.ndarray:
     """Denoise HxWx3 linear radiance -> HxWx3 float32 linear radiance >= 0 (at most HDR_MAX divided
@@ -165,7 +165,7 @@ def denoise_image(model: nn.Module, color: np.ndarray, aux: Aux = None,
     ``aux_inputs``. ``variance``: HxWx3 variance
     estimate of the image's mean (two halves); fed to a model with ``noise_input`` (without it
     such a model is told the noise is unknown) and used by ``skip_below`` (see the module
-    docstring). ``core``: tile core side in pixels (memory bound of the tiles,
+    docstring). ``core``: tile core side in pixels, or (rows, columns) (memory bound of the tiles,
     :func:`tile_bytes_per_pixel`; the result does not depend on it). ``max_bytes``: scratch
     bound of the passes over the whole image (exposure, the skip test, copying skipped parts);
     the result does not depend on it either. The model runs in eval mode; its previous mode is
@@ -192,16 +192,17 @@ def denoise_image(model: nn.Module, color: np.ndarray, aux: Aux = None,
         h, w = t.wy1 - t.wy0, t.wx1 - t.wx0
         rgb = _scaled(color[t.wy0:t.wy1, t.wx0:t.wx1], scale)
         x = torch.empty(1, config.image_channels, h, w)  # filled part by part: no concatenation
-        x[0, :3] = transfer.forward(torch.from_numpy(rgb)).permute(2, 0, 1)
+        encoded = transfer.forward(torch.from_numpy(rgb))
+        x[0, :3] = encoded.permute(2, 0, 1)
         if aux is not None:
             x[0, 3:9] = _aux_window(aux, t).permute(2, 0, 1)
         if config.noise_input:
             var = None if variance is None else \
                 np.asarray(variance[t.wy0:t.wy1, t.wx0:t.wx1], np.float32) * np.float32(scale * scale)
             x[0, config.noise_start:] = torch.from_numpy(
-                noise_channels(rgb, var, transfer, config.noise_radius)).permute(2, 0, 1)
+                noise_channels(rgb, var, transfer, config.noise_radius, encoded)).permute(2, 0, 1)
             del var
-        del rgb
+        del rgb, encoded
         y = model(x)[0]
         del x
         y = transfer.inverse(torch.nan_to_num_(y, nan=0.0).clamp_(0.0, 1.0)).permute(1, 2, 0).numpy()

@@ -27,13 +27,14 @@ from model.transfer import HDR_MAX, TransferFunction
 
 
 def noise_channels(color: np.ndarray, variance: np.ndarray | None, transfer: TransferFunction,
-                   radius: int = 0) -> np.ndarray:
+                   radius: int = 0, encoded: torch.Tensor | None = None) -> np.ndarray:
     """HxWx4 float32 noise channels of HxWx3 sanitised radiance ``color`` (finite, >= 0) and its
     HxWx3 variance estimate (NaN -> 0, +Inf -> the largest radiance; None: unknown -> all 0).
 
     ``radius`` > 0: the variance is averaged over a (2r+1)^2 window first (cut at the borders),
     so a pixel's channel tells the local noise level rather than its own one-degree-of-freedom
     estimate (an output pixel then depends on inputs up to ``radius`` pixels further away).
+    ``encoded``: ``transfer.forward`` of ``color`` (HxWx3) when the caller has it already.
     """
     h, w = color.shape[:2]
     out = np.zeros((h, w, 4), np.float32)
@@ -46,9 +47,10 @@ def noise_channels(color: np.ndarray, variance: np.ndarray | None, transfer: Tra
         var = F.avg_pool2d(planes, 2 * radius + 1, stride=1, padding=radius,
                            count_include_pad=False)[0].permute(1, 2, 0).numpy()
     sigma = np.sqrt(var).astype(np.float32)
-    x = torch.from_numpy(np.ascontiguousarray(color, np.float32))
+    if encoded is None:
+        encoded = transfer.forward(torch.from_numpy(np.ascontiguousarray(color, np.float32)))
     upper = torch.from_numpy(np.minimum(np.asarray(color, np.float32) + sigma, HDR_MAX))
-    out[..., :3] = (transfer.forward(upper) - transfer.forward(x)).clamp(min=0.0).numpy()
+    out[..., :3] = (transfer.forward(upper) - encoded).clamp(min=0.0).numpy()
     out[..., 3] = 1.0
     return out
 

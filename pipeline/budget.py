@@ -30,7 +30,7 @@ import numpy as np
 
 from imaging.errors import DenoiserError
 from imaging.render import render_loaded
-from imaging.tiling import plan_tiles
+from imaging.tiling import Core, plan_tiles
 from pipeline.denoise import WEIGHTS_DIR, Denoiser
 from pipeline.pareto import error_at_spp, metric_error
 
@@ -168,7 +168,7 @@ def probe_render(scene: Any, seed: int, aovs: Sequence[str], budget_s: float,
     return RenderCost(2 * fixed if halves else fixed, per, time.perf_counter() - start)
 
 
-def window_pixels(height: int, width: int, core: int, margin: int) -> int:
+def window_pixels(height: int, width: int, core: Core, margin: int) -> int:
     """Pixels the network processes for an image: the sum of its tile windows."""
     return sum((t.wy1 - t.wy0) * (t.wx1 - t.wx0) for t in plan_tiles(height, width, core, margin))
 
@@ -179,15 +179,17 @@ def denoise_seconds(denoiser: Denoiser, height: int, width: int, side: int = 128
     side = max(16, min(side, max(height, width)))
     img = np.random.default_rng(0).random((side, side, 3), dtype=np.float32)
     denoiser.denoise_array(img[:16, :16])  # warm-up
-    core, margin = denoiser.core_size(), denoiser.margin
+    margin = denoiser.margin
     half = side // 2
     t_half = denoiser.denoise_array(img[:half, :half]).seconds
     t_full = denoiser.denoise_array(img).seconds
-    px_half, px_full = window_pixels(half, half, core, margin), window_pixels(side, side, core, margin)
+    px_half = window_pixels(half, half, denoiser.cores(half, half), margin)
+    px_full = window_pixels(side, side, denoiser.cores(side, side), margin)
     per_px = (t_full - t_half) / (px_full - px_half)
     per_call = t_half - per_px * px_half
     if per_px <= 0 or per_call < 0:  # timing noise: all of it per pixel
         per_px, per_call = t_full / px_full, 0.0
+    core = denoiser.cores(height, width)
     tiles = sum(1 for _ in plan_tiles(height, width, core, margin))
     return per_call * tiles + per_px * window_pixels(height, width, core, margin)
 

@@ -98,8 +98,8 @@ def test_denoise_seconds_scales_by_tile_windows() -> None:
     class FakeDenoiser:
         margin = 8
 
-        def core_size(self) -> int:
-            return 64
+        def cores(self, height: int, width: int) -> tuple[int, int]:
+            return 64, 64
 
         def denoise_array(self, img: np.ndarray) -> SimpleNamespace:
             h, w = img.shape[:2]

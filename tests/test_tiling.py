@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from imaging.tiling import core_for_budget, plan_tiles, run_tiled
+from imaging.tiling import core_for_budget, cores_for_budget, plan_tiles, run_tiled
 
 
 @pytest.mark.parametrize("h,w,core,margin", [(1, 1, 8, 3), (1, 37, 8, 3), (37, 1, 8, 3),
@@ -47,3 +47,43 @@ def test_too_small_margin_differs(rng) -> None:
 def test_core_for_budget() -> None:
     assert core_for_budget(bytes_per_pixel=1000, max_bytes=1000 * 100**2, margin=10) == 80
     assert core_for_budget(bytes_per_pixel=1e9, max_bytes=1, margin=10) == 16
+
+
+def _windows(h: int, w: int, core, margin: int, align: int) -> list[int]:
+    return [(t.wy1 - t.wy0) * (t.wx1 - t.wx0) for t in plan_tiles(h, w, core, margin, align)]
+
+
+@pytest.mark.parametrize("h,w,core", [(50, 37, (16, 32)), (64, 64, (64, 8)), (7, 90, (3, 90)), (1, 1, (1, 1))])
+def test_rectangular_cores_partition_the_image(h: int, w: int, core: tuple[int, int]) -> None:
+    covered = np.zeros((h, w), int)
+    for t in plan_tiles(h, w, core, 3):
+        covered[t.y0:t.y1, t.x0:t.x1] += 1
+        assert t.y1 - t.y0 <= core[0] and t.x1 - t.x0 <= core[1]
+    assert (covered == 1).all()
+
+
+@pytest.mark.parametrize("h,w", [(1080, 1920), (720, 1280), (2160, 3840), (37, 5000), (300, 20)])
+@pytest.mark.parametrize("budget_px", [300_000, 2_000_000])
+def test_cores_for_budget_fits_and_beats_squares(h: int, w: int, budget_px: int) -> None:
+    """Every window within the bound (alignment included), and no more window pixels in all than
+    the square core of the same bound."""
+    margin, align = 253, 32
+    core = cores_for_budget(h, w, 1.0, budget_px, margin, align)
+    windows = _windows(h, w, core, margin, align)
+    if (h * w) <= budget_px:
+        assert len(windows) == 1 and windows[0] == h * w
+    assert max(windows) <= budget_px
+    square = core_for_budget(1.0, budget_px, margin)
+    if max(_windows(h, w, square, margin, align)) <= budget_px:
+        assert sum(windows) <= sum(_windows(h, w, square, margin, align))
+
+
+def test_cores_for_budget_full_height_strips_for_1080p() -> None:
+    """The case it is for: 1920x1080 with a 253-px margin in two strips, 1.3x its pixels."""
+    core = cores_for_budget(1080, 1920, 1.0, 2_000_000, 253, 32)
+    windows = _windows(1080, 1920, core, 253, 32)
+    assert len(windows) == 2 and sum(windows) < 1.3 * 1080 * 1920
+
+
+def test_cores_for_budget_falls_back_to_the_smallest_cores() -> None:
+    assert cores_for_budget(500, 500, 1.0, 10.0, 253, 32, minimum=16) == (32, 32)
