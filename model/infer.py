@@ -25,6 +25,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from imaging.blocks import block_rows
 from imaging.tiling import Core, Tile, run_windows
 from model.architectures import alignment, inference_bytes_per_pixel, receptive_radius
 from model.config import ModelConfig
@@ -111,12 +112,6 @@ def tile_bytes_per_pixel(config: ModelConfig, folded: bool = True) -> float:
     return max(inference_bytes_per_pixel(config, folded), PASS_BYTES_PER_PIXEL + 4.0 * config.image_channels)
 
 
-def pass_rows(width: int, bytes_per_pixel: float, max_bytes: float, most: int) -> int:
-    """Rows per block of a whole-image pass costing ``bytes_per_pixel`` of scratch: as many as
-    ``max_bytes`` allows, at least 1, at most ``most``."""
-    return max(1, min(most, int(max_bytes // (bytes_per_pixel * max(1, width)))))
-
-
 def noisy_region(color: np.ndarray, variance: np.ndarray, transfer: TransferFunction, scale: float,
                  threshold: float, align: int, max_bytes: float = DEFAULT_PASS_BYTES
                  ) -> tuple[int, int, int, int] | None:
@@ -175,14 +170,14 @@ def denoise_image(model: nn.Module, color: np.ndarray, aux: Aux = None,
     _check_inputs(config, color, aux, variance)
     transfer = get_transfer(config.transfer)
     height, width = color.shape[:2]
-    scale = exposure_scale(color, pass_rows(width, PASS_BYTES_PER_PIXEL, max_bytes, 256))
+    scale = exposure_scale(color, block_rows(width, PASS_BYTES_PER_PIXEL, max_bytes, 256))
     align = alignment(config)
     region = None
     out = None
     if variance is not None and skip_below is not None:
         region = noisy_region(color, variance, transfer, scale, skip_below, align, max_bytes)
         out = np.empty((height, width, 3), np.float32)
-        rows = pass_rows(width, PASS_BYTES_PER_PIXEL, max_bytes, height)
+        rows = block_rows(width, PASS_BYTES_PER_PIXEL, max_bytes, height)
         for y in range(0, height, rows):
             out[y:y + rows] = sanitize(color[y:y + rows])
         if region is None:

@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from imaging.allocator import fix_mmap_threshold
+from imaging.blocks import block_rows
 from imaging.errors import DenoiserError
 from imaging.hashing import file_sha256
 from imaging.tiling import core_for_budget, cores_for_budget
@@ -175,14 +176,14 @@ class Denoiser:
         ``keep_network``: also return the network's output before that blend (``network``).
         None of the inputs is changed or copied whole.
         """
-        from model.infer import denoise_image, pass_rows
+        from model.infer import denoise_image
 
         rgb = np.asarray(rgb)
         if rgb.ndim != 3 or rgb.shape[2] != 3 or min(rgb.shape[:2]) < 1:
             raise DenoiserError(f"expected an HxWx3 image, got shape {rgb.shape}")
         start = time.perf_counter()
         height, width = rgb.shape[:2]
-        nonfinite, negative = count_invalid(rgb, pass_rows(width, COUNT_BYTES_PER_PIXEL, self.max_bytes, height))
+        nonfinite, negative = count_invalid(rgb, block_rows(width, COUNT_BYTES_PER_PIXEL, self.max_bytes, height))
         aux = None
         if self.needs_aovs:
             if albedo is None or normals is None:

@@ -21,12 +21,12 @@ from imaging.atomic_io import json_safe
 from imaging.bitmap_io import image_format, output_format, read_bitmap, write_bitmap
 from imaging.errors import DenoiserError, ExrError
 from imaging.exr import write_exr
+from imaging.blocks import block_rows
 from imaging.exr_layers import (ALBEDO_WORDS, NORMAL_WORDS, VARIANCE_WORDS, ExrFile, Layer,
                                  describe_layers, find_aux_layer, pick_color_layer, read_exr_file,
                                  replace_layer, write_exr_file)
 from imaging.metrics import all_metrics
 from imaging.render import half_variance
-from model.infer import pass_rows
 from pipeline.denoise import Denoiser
 from pipeline.noise_guard import DEFAULT_STRENGTH, strength_for
 
@@ -120,7 +120,7 @@ def combine_halves(a: InputImage, b: InputImage, max_bytes: float = 64 * 2**20) 
     n_a, n_b = (a.spp, b.spp) if a.spp and b.spp else (1, 1)
     mean, variance = np.empty(a.rgb.shape, np.float32), np.empty(a.rgb.shape, np.float32)
     height, width = a.rgb.shape[:2]
-    rows = pass_rows(width, HALVES_BYTES_PER_PIXEL, max_bytes, height)
+    rows = block_rows(width, HALVES_BYTES_PER_PIXEL, max_bytes, height)
     for y in range(0, height, rows):
         block = slice(y, y + rows)
         mean[block] = (n_a * a.rgb[block].astype(np.float64) + n_b * b.rgb[block]) / (n_a + n_b)
