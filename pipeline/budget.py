@@ -32,6 +32,7 @@ from imaging.errors import DenoiserError
 from imaging.render import render_loaded
 from imaging.tiling import Core, plan_tiles
 from pipeline.denoise import WEIGHTS_DIR, Denoiser
+from pipeline.evaluation import RenderSettings, make_denoiser
 from pipeline.pareto import error_at_spp, metric_error
 
 DENOISE_SHARE = 1.0 / 3.0
@@ -194,17 +195,17 @@ def denoise_seconds(denoiser: Denoiser, height: int, width: int, side: int = 128
     return per_call * tiles + per_px * window_pixels(height, width, core, margin)
 
 
-def budget_candidates(model: str | None, max_memory_mb: float) -> dict[str, Denoiser]:
+def budget_candidates(model: str | None, settings: RenderSettings) -> dict[str, Denoiser]:
     """Models to choose from: every preset with weights for ``auto``, else the one given."""
     if model != "auto":
-        den = Denoiser(model, max_memory_mb=max_memory_mb)
+        den = make_denoiser(model, settings)
         return {Path(den.path).stem: den}
     found = {name: WEIGHTS_DIR / f"{name}.ckpt" for name in PRESET_ORDER}
     found = {name: path for name, path in found.items() if path.exists()}
     if not found:
         raise BudgetError(f"--model auto: no preset weights in {WEIGHTS_DIR} "
                           f"({', '.join(n + '.ckpt' for n in PRESET_ORDER)})")
-    return {name: Denoiser(path, max_memory_mb=max_memory_mb) for name, path in found.items()}
+    return {name: make_denoiser(path, settings) for name, path in found.items()}
 
 
 def plan_run(budget_s: float, started: float, scene: Any, seed: int, aovs: Sequence[str],

@@ -14,6 +14,11 @@ from imaging.usage import OneLineParser, int_list, name_list, name_value, positi
 from pipeline.evaluation import RenderSettings
 
 
+SKIP_HELP = ("leave the 64-px cells whose noise (transfer-space standard deviation from the halves) is "
+             "below NOISE out of the network; they keep the render, as the noise guard would "
+             "(benchmarks/skip.py measures time and change; default: the network everywhere)")
+
+
 def add_render_arguments(p: argparse.ArgumentParser, reference_required: bool, guard_help: str) -> None:
     """The flags of :class:`RenderSettings` (``render-and-denoise`` and ``tradeoff``)."""
     p.add_argument("scene", help="Mitsuba 3 scene XML file")
@@ -27,13 +32,15 @@ def add_render_arguments(p: argparse.ArgumentParser, reference_required: bool, g
     p.add_argument("--max-memory-mb", type=float, default=DEFAULT_MAX_MEMORY_MB,
                    help="memory bound of the render's films and of one denoiser tile")
     p.add_argument("--no-noise-guard", action="store_true", help=guard_help)
+    p.add_argument("--skip-below", type=positive_float, metavar="NOISE", help=SKIP_HELP)
 
 
 def render_settings(args: argparse.Namespace) -> RenderSettings:
     """The :class:`RenderSettings` of parsed :func:`add_render_arguments` flags."""
     return RenderSettings(scene=args.scene, resolution=tuple(args.res) if args.res else None, seed=args.seed,
                           params=dict(args.param), max_memory_mb=args.max_memory_mb,
-                          noise_guard=not args.no_noise_guard, reference=args.reference,
+                          noise_guard=not args.no_noise_guard, skip_below=args.skip_below,
+                          reference=args.reference,
                           reference_spp=args.reference_spp)
 
 
@@ -112,6 +119,7 @@ def denoise_parser() -> OneLineParser:
     p.add_argument("--model", help="checkpoint or preset name (default: the shipped weights)")
     p.add_argument("--reference", help="reference image: print metrics")
     p.add_argument("--max-memory-mb", type=float, default=DEFAULT_MAX_MEMORY_MB, help="tile memory bound")
+    p.add_argument("--skip-below", type=positive_float, metavar="NOISE", help=SKIP_HELP)
     return p
 
 
@@ -130,7 +138,8 @@ def denoise_main(argv: list[str] | None = None) -> int:
     cfg = DenoiseFileConfig(inputs=list(args.halves or args.files[:1]), output=args.files[-1],
                             model=args.model, reference=args.reference, layer=args.layer,
                             variance_layer=args.variance_layer, rgb_only=args.rgb_only, spp=args.spp,
-                            noise_guard=not args.no_noise_guard, max_memory_mb=args.max_memory_mb)
+                            noise_guard=not args.no_noise_guard, max_memory_mb=args.max_memory_mb,
+                            skip_below=args.skip_below)
     result, code = parser.attempt(lambda: denoise_file(cfg))
     if code:
         return code

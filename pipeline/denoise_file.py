@@ -52,6 +52,7 @@ class DenoiseFileConfig:
     spp: int | None = None
     noise_guard: bool = True
     max_memory_mb: float = 1024.0
+    skip_below: float | None = None
 
 
 @dataclass
@@ -150,7 +151,7 @@ def denoise_file(cfg: DenoiseFileConfig) -> dict[str, Any]:
         raise DenoiserError(f"expected one input or two halves, got {len(cfg.inputs)} files")
     if len(cfg.inputs) == 2 and cfg.variance_layer is not None:
         raise DenoiserError("two halves give the variance: --variance-layer is for a single input")
-    denoiser = Denoiser(cfg.model, max_memory_mb=cfg.max_memory_mb)
+    denoiser = Denoiser(cfg.model, max_memory_mb=cfg.max_memory_mb, skip_below=cfg.skip_below)
     images = [read_input(p, cfg.layer, cfg.variance_layer) for p in cfg.inputs]
     image = images[0] if len(images) == 1 else combine_halves(*images, max_bytes=denoiser.max_bytes)
     ref = read_input(cfg.reference).rgb if cfg.reference else None

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -41,7 +42,8 @@ class RenderSettings:
     config.json). ``resolution`` [W, H] (None: the scene's own); ``params``: the scene's
     ``$parameters``; ``max_memory_mb`` bounds the render's films and the denoiser's tiles;
     ``noise_guard``: render in two halves and guard the models (off: one piece, the network's
-    output as it is); the reference is an EXR file or a render at ``reference_spp`` (another seed)."""
+    output as it is); ``skip_below``: with the halves, leave the parts whose noise is below this out
+    of the network (:class:`pipeline.denoise.Denoiser`; None: run it everywhere); the reference is an EXR file or a render at ``reference_spp`` (another seed)."""
 
     scene: str
     resolution: tuple[int, int] | None = None
@@ -49,6 +51,7 @@ class RenderSettings:
     params: dict[str, str] = field(default_factory=dict)
     max_memory_mb: float = DEFAULT_MAX_MEMORY_MB
     noise_guard: bool = True
+    skip_below: float | None = None
     reference: str | None = None
     reference_spp: int | None = None
 
@@ -63,6 +66,12 @@ class RenderSettings:
     def load(self, aovs: Sequence[str] = ()) -> Any:
         """The scene prepared (box filter, float32 film, ``aovs``) and loaded: a ``mi.Scene``."""
         return load_scene(prepare(self.scene, self.resolution, aovs, self.params))
+
+
+def make_denoiser(model: str | Path | None, settings: RenderSettings) -> Denoiser:
+    """The denoiser of ``model`` with the settings' memory bound and, with the halves, skipping."""
+    return Denoiser(model, max_memory_mb=settings.max_memory_mb,
+                    skip_below=settings.skip_below if settings.noise_guard else None)
 
 
 def aovs_for(denoisers: Iterable[Denoiser]) -> tuple[str, ...]:

@@ -26,7 +26,7 @@ from imaging.peak_rss import PeakRSS
 from imaging.render import RenderResult
 from pipeline.budget import BudgetPlan, budget_candidates, plan_run
 from pipeline.denoise import DenoiseResult, Denoiser
-from pipeline.evaluation import (RenderSettings, aovs_for, check_reference, denoise_output, read_reference,
+from pipeline.evaluation import (RenderSettings, aovs_for, check_reference, denoise_output, make_denoiser, read_reference,
                                  render_input, render_reference, score)
 from pipeline.noise_guard import DEFAULT_PIVOT_SPP, DEFAULT_RADIUS, strength_for
 from pipeline.oidn import oidn_available
@@ -121,9 +121,8 @@ def _start(cfg: RunConfig, log: Callable[[str], None]) -> _Run:
     (everything that can fail before the render); write config.json."""
     cfg.render.check()
     started = time.perf_counter()
-    candidates = budget_candidates(cfg.model, cfg.render.max_memory_mb) if cfg.time_budget is not None else {}
-    denoiser = (next(iter(candidates.values())) if candidates
-                else Denoiser(cfg.model, max_memory_mb=cfg.render.max_memory_mb))
+    candidates = budget_candidates(cfg.model, cfg.render) if cfg.time_budget is not None else {}
+    denoiser = next(iter(candidates.values())) if candidates else make_denoiser(cfg.model, cfg.render)
     reference = read_reference(cfg.render)
     _check_out(Path(cfg.out))
     write_json_atomic(Path(cfg.out) / "config.json", asdict(cfg))

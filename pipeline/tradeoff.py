@@ -23,7 +23,7 @@ from imaging.progress import ProgressBar, ProgressFactory
 from imaging.render import RenderResult
 from model.config import PRESETS
 from pipeline.denoise import Denoiser, resolve_model
-from pipeline.evaluation import (OIDN, Output, RenderSettings, aovs_for, check_reference, denoise_output,
+from pipeline.evaluation import (OIDN, Output, RenderSettings, aovs_for, check_reference, denoise_output, make_denoiser,
                                  read_reference, render_input, render_reference, score)
 from pipeline.pareto import ERROR_OF_METRIC, equal_quality, metric_error, pareto_front
 
@@ -123,7 +123,7 @@ def measure(cfg: TradeoffConfig, progress: ProgressFactory | None = None) -> dic
     cfg.check()
     settings = cfg.render
     labels = model_labels(cfg.models)
-    models = {name: Denoiser(path, max_memory_mb=settings.max_memory_mb) for name, path in labels.items()}
+    models = {name: make_denoiser(path, settings) for name, path in labels.items()}
     reference = read_reference(settings)
     aovs = aovs_for(models.values())
     scene = settings.load(aovs)

@@ -11,6 +11,7 @@ import pytest
 
 from imaging.tiling import plan_tiles
 from pipeline import budget
+from pipeline.evaluation import RenderSettings
 from pipeline.budget import (BudgetError, RenderCost, budget_candidates, denoise_seconds, fit_spp,
                              load_curves, plan_budget, probe_render, window_pixels)
 from pipeline.cli import main
@@ -116,10 +117,10 @@ def test_auto_candidates_are_the_presets_with_weights(tmp_path: Path,
                                                       monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(budget, "WEIGHTS_DIR", tmp_path)
     with pytest.raises(BudgetError, match="no preset weights in"):
-        budget_candidates("auto", 64)
+        budget_candidates("auto", RenderSettings(scene="unused.xml", max_memory_mb=64))
     write_tiny_checkpoint(tmp_path / "fast.ckpt")
     write_tiny_checkpoint(tmp_path / "high.ckpt", seed=1)
-    assert set(budget_candidates("auto", 64)) == {"fast", "high"}
+    assert set(budget_candidates("auto", RenderSettings(scene="unused.xml", max_memory_mb=64))) == {"fast", "high"}
 
 
 @pytest.mark.parametrize("args", [["--model", "auto"], ["--time-budget", "5", "--spp", "4"],

@@ -17,7 +17,8 @@ from imaging.exr import write_exr
 from imaging.metrics import flip, psnr, relmse
 from pipeline.cli import main as render_main
 from pipeline.denoise import Denoiser
-from pipeline.evaluation import BARE, OIDN, RenderSettings, denoise_outputs, evaluate, render_input, score
+from pipeline.evaluation import (BARE, OIDN, RenderSettings, denoise_outputs, evaluate, make_denoiser, render_input,
+                                 score)
 from pipeline.oidn import oidn_available
 from tests.test_denoise import TINY, write_tiny_checkpoint
 
@@ -106,3 +107,22 @@ def test_scoreboard_and_render_and_denoise_give_the_same_psnr(tmp_path: Path, ck
     if oidn_available():
         assert quality["oidn"]["psnr"] == board["oidn"]["psnr"]
     assert board["ours_bare"]["psnr"] != board["ours"]["psnr"]
+
+
+def test_skip_below_reaches_the_denoiser_only_with_the_halves(demo: tuple, ckpt: Path) -> None:
+    """--skip-below: a converged render (noise below any threshold here) comes back as itself, the
+    network skipped; without the halves there is no noise estimate and nothing is skipped."""
+    settings, scene = demo
+    skipping = make_denoiser(ckpt, replace(settings, skip_below=1.0))
+    assert skipping.skip_below == 1.0
+    assert make_denoiser(ckpt, replace(settings, skip_below=1.0, noise_guard=False)).skip_below is None
+    render = render_input(scene, 4, settings)
+    out = skipping.denoise_render(render)
+    assert out.tiles == 0 and np.array_equal(out.image, np.clip(render.rgb, 0, None))
+
+
+def test_skip_below_flag_goes_into_the_settings(tmp_path: Path, ckpt: Path) -> None:
+    out = tmp_path / "run"
+    assert render_main([str(DEMO), "--res", "16", "16", "--spp", "2", "--model", str(ckpt), "--no-compare",
+                        "--skip-below", "1", "--out", str(out)]) == 0
+    assert json.loads((out / "config.json").read_text())["render"]["skip_below"] == 1.0
