@@ -358,10 +358,53 @@ def render_memory(results: Results) -> list[str]:
             *_table(["film", "setting", "peak MB", "render scratch MB", "crops", "s"], rows, right=2)]
 
 
+def denoise_memory(results: Results) -> list[str]:
+    """Scratch of the denoise step of both commands per size, budget and code, beside the render's
+    own peak and the largest of the other stages."""
+    data = results.json("denoise_memory")["commands"]
+    rows = []
+    for r in data["rows"]:
+        stages = {s["stage"]: s for s in r["stages"]}
+        d = stages["denoise"]
+        rest = [s for s in r["stages"] if s["stage"] not in ("denoise", "render") and not s["stage"].startswith("setup")]
+        worst = max(rest, key=lambda s: s["scratch_mb"])
+        render = r.get("render_memory") or {}
+        rows.append([f"{r['res'][0]}x{r['res'][1]}", f"`{r['command']}`", r["setting"], f"{r['budget_mb']:g}",
+                     _f(d["scratch_mb"], 0), f"{d['scratch_mb'] / r['budget_mb']:.2f}", _f(d["images_mb"], 0),
+                     _f(render.get("peak_mb"), 0), f"{worst['stage']}: {worst['scratch_mb']:,.0f}",
+                     _f(r["peak_mb"], 0), _f(d["seconds"], 0)])
+    note = (f"{data['scene']} at {data['spp']} spp in two halves (`render-and-denoise --no-compare`), then `denoise` "
+            "of an EXR with that render's colour and variance layers; a fresh process per row, each stage's "
+            "peak exact (high-water mark reset before it). Scratch = the stage's peak - RSS at its start - the "
+            "images it makes (denoise: the output and the guard's weight map)"
+            + (f"; 'before': the code of {data['before_rev']}" if data.get("before_rev") else "")
+            + ". Render peak: metrics.json's render_memory (the render step's own peak RSS).")
+    return [caption("python -m benchmarks.denoise_memory", "benchmarks/results/denoise_memory.json", data, note), "",
+            *_table(["image", "command", "code", "budget MB", "denoise scratch MB", "x budget", "its images MB",
+                     "render peak MB", "largest other stage MB", "process peak MB", "denoise s"], rows, right=3)]
+
+
+def denoise_tile_memory(results: Results) -> list[str]:
+    """One tile of each preset: measured scratch against the planner's estimate, per side."""
+    data = results.json("denoise_memory")["calibrate"]
+    sides = sorted({r["side"] for r in data["rows"]})
+    cells: dict[tuple[str, str], dict[int, str]] = {}
+    for r in data["rows"]:
+        cells.setdefault((r["preset"], r["setting"]), {})[r["side"]] = \
+            f"{r['scratch_mb']:,.0f} / {r['estimate_mb']:,.0f}"
+    rows = [[preset, setting, *(by_side.get(s, "") for s in sides)] for (preset, setting), by_side in cells.items()]
+    note = ("One window of the whole chain (model.infer.denoise_image on an SxS image, random weights, the "
+            "variance given to the models that take it) in a fresh process: resident scratch beyond the output / "
+            "the tile planner's estimate (model.infer.tile_bytes_per_pixel x pixels + TILE_FIXED_BYTES), MB. "
+            "'glibc default': without imaging/allocator.py's fixed mmap threshold.")
+    return [caption("python -m benchmarks.denoise_memory", "benchmarks/results/denoise_memory.json", data, note), "",
+            *_table(["preset", "setting", *(f"{s}x{s}" for s in sides)], rows, right=2)]
+
+
 TABLES: dict[str, Callable[[Results], list[str]]] = {
     f.__name__: f for f in (scoreboard, scoreboard_scenes, noise_guard, noise_guard_settings, inference, science, multiscale_presets,
                             roofline, budget, presets, validation, ablations, train_throughput, scaleout, extremes,
-                            render_memory)}
+                            render_memory, denoise_memory, denoise_tile_memory)}
 
 
 def pages(root: Path = ROOT) -> list[Path]:
