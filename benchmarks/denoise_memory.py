@@ -40,6 +40,7 @@ from pathlib import Path
 from typing import Any
 
 from imaging.atomic_io import write_json_atomic
+from imaging.usage import size_list
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results" / "denoise_memory.json"
@@ -232,16 +233,11 @@ def commands(sizes: list[tuple[int, int]], budgets: list[float], spp: int, befor
     return rows
 
 
-def _size(text: str) -> tuple[int, int]:
-    w, h = text.lower().split("x")
-    return int(w), int(h)
-
-
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--parts", default="calibrate,commands")
     p.add_argument("--budgets", default="256,1024", help="comma-separated MB (256,1024)")
-    p.add_argument("--sizes", default="1920x1080,3840x2160,7680x4320")
+    p.add_argument("--sizes", type=size_list, default=size_list("1920x1080,3840x2160,7680x4320"))
     p.add_argument("--spp", type=int, default=2)
     p.add_argument("--before", metavar="REV", help="also measure the commands with the code of this git revision")
     p.add_argument("--quick", action="store_true", help="one preset, small tiles, 640x360 only; writes nothing")
@@ -249,7 +245,7 @@ def main() -> None:
     parts = args.parts.split(",")
     if not set(parts) <= {"calibrate", "commands"}:
         raise SystemExit(f"denoise_memory: unknown part in --parts {args.parts!r}")
-    sizes = [(640, 360)] if args.quick else [_size(s) for s in args.sizes.split(",")]
+    sizes = [(640, 360)] if args.quick else args.sizes
     budgets = [float(b) for b in args.budgets.split(",")]
     result = json.loads(RESULTS.read_text()) if RESULTS.exists() and not args.quick else {}
     for part in parts:  # each part records its own command, date and load: the other keeps its own

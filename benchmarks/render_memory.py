@@ -34,6 +34,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from imaging.usage import size_list
+
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results" / "render_memory.json"
 DEMO = ROOT / "scenes" / "examples" / "demo.xml"
@@ -152,23 +154,18 @@ def sizes(sizes_: list[tuple[int, int]], budgets: list[float], spp: int, aovs: b
     return rows
 
 
-def _size(text: str) -> tuple[int, int]:
-    w, h = text.lower().split("x")
-    return int(w), int(h)
-
-
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--before", metavar="REV", help="git revision whose pipeline/ is 'before' (no budget)")
     p.add_argument("--budgets", default="256,1024", help="comma-separated MB (256,1024)")
     p.add_argument("--spp", type=int, default=2)
     p.add_argument("--aovs", action="store_true", help="also render albedo and normals (9 channels)")
-    p.add_argument("--sizes", default="1920x1080,3840x2160,7680x4320")
+    p.add_argument("--sizes", type=size_list, default=size_list("1920x1080,3840x2160,7680x4320"))
     p.add_argument("--parts", default="calibrate,sizes")
     p.add_argument("--quick", action="store_true", help="small calibration films, 1080p only")
     args = p.parse_args()
     parts = args.parts.split(",")
-    sizes_ = [_size(s) for s in args.sizes.split(",")][:1 if args.quick else None]
+    sizes_ = args.sizes[:1 if args.quick else None]
     budgets = [float(b) for b in args.budgets.split(",")]
     result: dict[str, Any] = {
         "command": " ".join([Path(sys.executable).name, *sys.argv]), "date": time.strftime("%Y-%m-%d %H:%M"),

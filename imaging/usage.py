@@ -100,3 +100,19 @@ def name_value(text: str) -> tuple[str, str]:
     if not sep or not name:
         raise argparse.ArgumentTypeError(f"expected name=value, got {text!r}")
     return name, value
+
+
+def size_list(text: str) -> list[tuple[int, int]]:
+    """Argument type: comma-separated image sizes WxH (at least one), e.g. ``1920x1080,3840x2160``."""
+    sizes = []
+    for item in (v.strip() for v in text.split(",") if v.strip()):
+        try:
+            w, h = (int(v) for v in item.lower().split("x"))
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected comma-separated sizes WxH, got {text!r}") from None
+        if min(w, h) < 1:
+            raise argparse.ArgumentTypeError(f"expected positive sizes WxH, got {text!r}")
+        sizes.append((w, h))
+    if not sizes:
+        raise argparse.ArgumentTypeError(f"expected comma-separated sizes WxH, got {text!r}")
+    return sizes

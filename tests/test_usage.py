@@ -9,7 +9,7 @@ import pytest
 
 from dataset_gen.cli import main as generate_main
 from imaging.errors import DenoiserError
-from imaging.usage import OneLineParser, int_list, name_list, name_value, positive_float, positive_int
+from imaging.usage import OneLineParser, int_list, name_list, name_value, positive_float, positive_int, size_list
 from model.cli import main as train_main
 from pipeline.cli import denoise_main, main as render_main, tradeoff_main
 
@@ -63,7 +63,7 @@ def test_runtime_errors_are_one_line_like_usage_errors(capsys: pytest.CaptureFix
 
 @pytest.mark.parametrize("kind, text, value", [
     (int_list, "4,16,,128", (4, 16, 128)), (name_list, "a,,b", ("a", "b")), (name_value, "x=1=2", ("x", "1=2")),
-    (positive_int, "3", 3), (positive_float, "0.5", 0.5)])
+    (positive_int, "3", 3), (positive_float, "0.5", 0.5), (size_list, "1920x1080, 64X1", [(1920, 1080), (64, 1)])])
 def test_argument_types(kind: Callable[[str], object], text: str, value: object) -> None:
     assert kind(text) == value
 
@@ -71,7 +71,7 @@ def test_argument_types(kind: Callable[[str], object], text: str, value: object)
 @pytest.mark.parametrize("kind, text", [
     (int_list, "4,x"), (int_list, "4,0"), (int_list, ","), (name_value, "=1"), (name_value, "x"),
     (positive_int, "0"), (positive_int, "1.5"), (positive_float, "inf"), (positive_float, "nan"),
-    (positive_float, "-1")])
+    (positive_float, "-1"), (size_list, "12"), (size_list, "0x5"), (size_list, ","), (size_list, "2x3x4")])
 def test_bad_arguments_are_refused(kind: Callable[[str], object], text: str) -> None:
     with pytest.raises(argparse.ArgumentTypeError, match=repr(text)):
         kind(text)
