@@ -74,8 +74,10 @@ def _curve(run: Path) -> list[dict[str, Any]]:
 def _at(curve: list[dict[str, Any]], minutes: float) -> dict[str, Any] | None:
     """Validation at ``minutes`` CPU minutes: the mean of the validations made in the last quarter
     before it, ``(0.75 * minutes, minutes]`` (at a constant LR one validation scatters by ~1-2 dB
-    from the next), with the step of the last of them; None when there is none."""
-    window = [c for c in curve if 0.75 * minutes < c["cpu_min"] <= minutes + 1e-9]
+    from the next), with the step of the last of them; None when there is none. A run stops at
+    the first step past its budget, so its final validation may come up to 1 % (+3 s) late and
+    still counts."""
+    window = [c for c in curve if 0.75 * minutes < c["cpu_min"] <= minutes * 1.01 + 0.05]
     if not window:
         return None
     mean = lambda key: float(np.mean([c[key] for c in window]))  # noqa: E731
