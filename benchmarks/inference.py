@@ -19,7 +19,6 @@ Also prints where the time of one call goes at the smallest size (stages of the 
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import statistics
@@ -32,6 +31,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from imaging.atomic_io import write_json_atomic
 from model.architectures import build_model
 from model.checkpoint import save_checkpoint
 from model.config import PRESETS, preset
@@ -182,8 +182,7 @@ def main() -> None:
             print(f"{size} {name} ms: " + ", ".join(f"{k} {v:.1f}" for k, v in parts.items()))
     print(f"load average before/after: {load_before[0]:.2f} / {results['machine']['loadavg_after'][0]:.2f} "
           f"on {os.cpu_count()} CPUs")
-    RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    RESULTS.write_text(json.dumps(results, indent=1) + "\n")
+    write_json_atomic(RESULTS, results)
     print(f"wrote {RESULTS}")
 
 

@@ -34,6 +34,8 @@ from typing import Any
 
 import numpy as np
 
+from imaging.atomic_io import write_json_atomic
+
 RESULTS = Path(__file__).resolve().parent / "results"
 UNET = ["--preset", "u-balanced", "--patch", "128", "--batch", "8", "--lr", "1e-3", "--lr-warmup", "100"]
 FLAT = ["--patch", "32", "--batch", "64", "--lr", "1e-3"]
@@ -118,7 +120,7 @@ def report(runs: Path) -> dict[str, Any]:
         if config["model"].get("noise_input") and (runs / name / "last.ckpt").exists():
             entry["hidden_noise"] = hidden_noise_psnr(runs / name)
         results["runs"][name] = entry
-    (RESULTS / "science.json").write_text(json.dumps(results, indent=1) + "\n")
+    write_json_atomic(RESULTS / "science.json", results)
     (RESULTS / "science.md").write_text("\n".join(table(results)) + "\n")
     plot(results, RESULTS / "science.png")
     return results

@@ -23,7 +23,6 @@ Writes benchmarks/results/skip.json.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import statistics
 import sys
@@ -33,6 +32,7 @@ from typing import Any
 
 import numpy as np
 
+from imaging.atomic_io import write_json_atomic
 from imaging.metrics import psnr
 from imaging.render import load_scene, prepare, render_loaded
 from model.architectures import alignment
@@ -115,8 +115,7 @@ def main() -> None:
             print(f"  skip below {t}: {r['seconds']:.3f} s ({100 * r['time_saved']:.0f}% saved, network on "
                   f"{100 * r['network_share_of_pixels']:.0f}% of pixels), PSNR {r['psnr']:.2f} dB, "
                   f"max change {r['max_abs_change']:.2e} (rel {r['max_rel_change']:.2e})")
-    RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    RESULTS.write_text(json.dumps(results, indent=1) + "\n")
+    write_json_atomic(RESULTS, results)
     print(f"wrote {RESULTS}")
 
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import struct
 import zlib
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import BinaryIO
 
@@ -152,8 +152,16 @@ def save_png(path: str | Path, image: np.ndarray, max_bytes: float = DEFAULT_BLO
         return
     height, width = image.shape[:2]
     per_value = FILTER_BYTES_PER_VALUE + (0 if image.dtype == np.uint8 else DISPLAY_BYTES_PER_VALUE)
+    convert = (lambda block: block) if image.dtype == np.uint8 else _display_block
+    bands = (convert(image[rows]) for rows in row_blocks(height, width * channels, per_value, max_bytes))
+    write_png_bands(path, width, height, bands, channels)
+
+
+def write_png_bands(path: str | Path, width: int, height: int, bands: Iterable[np.ndarray], channels: int = 3) -> None:
+    """Write a PNG atomically from its uint8 rows, given a band of rows at a time in order
+    (:class:`PngWriter`)."""
     with atomic_path(path) as tmp, open(tmp, "wb") as fh:
         writer = PngWriter(fh, width, height, channels)
-        for rows in row_blocks(height, width * channels, per_value, max_bytes):
-            writer.write(image[rows] if image.dtype == np.uint8 else _display_block(image[rows]))
+        for band in bands:
+            writer.write(band)
         writer.close()

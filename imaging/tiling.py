@@ -72,11 +72,16 @@ def core_for_budget(bytes_per_pixel: float, max_bytes: float, margin: int, minim
     return max(minimum, side - 2 * margin)
 
 
+def _round_up(n: int, multiple: int) -> int:
+    """The least multiple of ``multiple`` that is at least ``n``."""
+    return -(-n // multiple) * multiple
+
+
 def _axis_plans(size: int, margin: int, align: int, minimum: int) -> list[tuple[int, int, int]]:
     """Per number of cores along an axis of ``size`` px: (core, largest window, sum of windows)."""
     plans: dict[int, tuple[int, int, int]] = {}
     for parts in range(1, max(1, -(-size // max(minimum, align))) + 1):
-        core = max(align, -(-(-(-size // parts)) // align) * align)
+        core = max(align, _round_up(_round_up(size, parts) // parts, align))
         if core in plans:
             continue
         cuts = _cuts(size, core, align)

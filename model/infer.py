@@ -25,7 +25,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from imaging.blocks import block_rows
+from imaging.blocks import block_rows, row_blocks
 from imaging.tiling import Core, Tile, run_windows
 from model.architectures import alignment, inference_bytes_per_pixel, receptive_radius
 from model.config import ModelConfig
@@ -177,9 +177,8 @@ def denoise_image(model: nn.Module, color: np.ndarray, aux: Aux = None,
     if variance is not None and skip_below is not None:
         region = noisy_region(color, variance, transfer, scale, skip_below, align, max_bytes)
         out = np.empty((height, width, 3), np.float32)
-        rows = block_rows(width, PASS_BYTES_PER_PIXEL, max_bytes, height)
-        for y in range(0, height, rows):
-            out[y:y + rows] = sanitize(color[y:y + rows])
+        for rows in row_blocks(height, width, PASS_BYTES_PER_PIXEL, max_bytes):
+            out[rows] = sanitize(color[rows])
         if region is None:
             return out
 

@@ -21,7 +21,7 @@ from imaging.atomic_io import json_safe
 from imaging.bitmap_io import image_format, output_format, read_bitmap, write_bitmap
 from imaging.errors import DenoiserError, ExrError
 from imaging.exr import write_exr
-from imaging.blocks import block_rows
+from imaging.blocks import row_blocks
 from imaging.exr_layers import (ALBEDO_WORDS, NORMAL_WORDS, VARIANCE_WORDS, ExrFile, Layer,
                                  describe_layers, find_aux_layer, pick_color_layer, read_exr_file,
                                  replace_layer, write_exr_file)
@@ -121,11 +121,9 @@ def combine_halves(a: InputImage, b: InputImage, max_bytes: float = 64 * 2**20) 
     n_a, n_b = (a.spp, b.spp) if a.spp and b.spp else (1, 1)
     mean, variance = np.empty(a.rgb.shape, np.float32), np.empty(a.rgb.shape, np.float32)
     height, width = a.rgb.shape[:2]
-    rows = block_rows(width, HALVES_BYTES_PER_PIXEL, max_bytes, height)
-    for y in range(0, height, rows):
-        block = slice(y, y + rows)
-        mean[block] = (n_a * a.rgb[block].astype(np.float64) + n_b * b.rgb[block]) / (n_a + n_b)
-        variance[block] = half_variance(a.rgb[block], b.rgb[block], n_a, n_b)
+    for rows in row_blocks(height, width, HALVES_BYTES_PER_PIXEL, max_bytes):
+        mean[rows] = (n_a * a.rgb[rows].astype(np.float64) + n_b * b.rgb[rows]) / (n_a + n_b)
+        variance[rows] = half_variance(a.rgb[rows], b.rgb[rows], n_a, n_b)
     spp = a.spp + b.spp if a.spp and b.spp else None
     return InputImage(a.path, mean, a.exr, a.layer, a.albedo, a.normals, variance, "halves", spp)
 

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from imaging.blocks import row_blocks
 from imaging.tiling import Tile, core_for_budget, run_windows
 
 DEFAULT_RADIUS = 2      # window 5x5 (benchmarks/noise_guard.py)
@@ -161,7 +162,5 @@ def guard_in_place(noisy: np.ndarray, denoised: np.ndarray, variance: np.ndarray
 
     run_windows(weight, height, width, core_for_budget(GUARD_BYTES_PER_PIXEL, max_bytes, radius), radius,
                 out=weights)
-    rows = max(1, int(max_bytes // (BLEND_BYTES_PER_PIXEL * width)))
-    for y in range(0, height, rows):
-        block = slice(y, y + rows)
-        denoised[block] = blend(clean_render(noisy[block]), denoised[block], weights[block])
+    for rows in row_blocks(height, width, BLEND_BYTES_PER_PIXEL, max_bytes):
+        denoised[rows] = blend(clean_render(noisy[rows]), denoised[rows], weights[rows])

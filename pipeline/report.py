@@ -19,10 +19,9 @@ from typing import Any
 import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
-from imaging.atomic_io import atomic_path
 from imaging.blocks import DEFAULT_BLOCK_BYTES, row_blocks
 from imaging.metrics import tonemap
-from imaging.png import DISPLAY_BYTES_PER_VALUE, FILTER_BYTES_PER_VALUE, PngWriter, save_png, to_display
+from imaging.png import DISPLAY_BYTES_PER_VALUE, FILTER_BYTES_PER_VALUE, save_png, to_display, write_png_bands
 from pipeline.viewer import Page, Table, ViewerRow, ViewerSet, details, flip_map
 
 LABEL_H = 16
@@ -174,11 +173,7 @@ def write_comparison(path: Path, images: dict[str, np.ndarray], focus: str, agai
     """Write :func:`comparison_image` as a PNG atomically, a band of rows at a time (the bytes
     :func:`imaging.png.save_png` writes for the whole sheet)."""
     (width, height), bands = comparison_bands(images, focus, against, crop, zoom_width, max_bytes)
-    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
-        writer = PngWriter(fh, width, height)
-        for band in bands:
-            writer.write(band)
-        writer.close()
+    write_png_bands(path, width, height, bands)
     return path
 
 
