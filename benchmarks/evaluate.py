@@ -36,6 +36,7 @@ from benchmarks.eval_scenes import (CEILING_DB, EVAL_DIR, RESULTS, SEED, EvalSce
                                    run_record)
 from imaging.atomic_io import write_json_atomic, write_text_atomic
 from imaging.usage import COMMAND_ERRORS, OneLineParser, int_list, name_list
+from model.precision import PRECISIONS
 from pipeline.denoise import Denoiser
 from pipeline.evaluation import BARE, OIDN, evaluate
 from pipeline.viewer import Page, Table, ViewerRow, ViewerSet, flip_map
@@ -166,6 +167,10 @@ def build_parser() -> OneLineParser:
     p.add_argument("--eval-dir", type=Path, default=EVAL_DIR)
     p.add_argument("--out", type=Path, default=RESULTS)
     p.add_argument("--report-spp", type=int, help="spp whose images evaluate.html shows (default: the lowest)")
+    p.add_argument("--precisions", type=name_list, default=("auto",),
+                   help="float formats of the networks, each model in each (model.precision; "
+                        "default auto: what a user on this CPU gets); a model in a second format "
+                        "is named MODEL@FORMAT")
     p.add_argument("--quiet", action="store_true", help="no progress bar and no table")
     return p
 
@@ -180,7 +185,11 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--report-spp {report_spp} is not one of --spp {','.join(map(str, spps))}")
     try:
         scenes = eval_scenes(args.scenes, args.eval_dir)
-        denoisers = {spec or "default": Denoiser(spec) for spec in (args.models or [args.model])}
+        unknown = [p for p in args.precisions if p not in PRECISIONS]
+        if unknown:
+            parser.error(f"--precisions: {', '.join(unknown)} is not one of {', '.join(PRECISIONS)}")
+        denoisers = {(spec or "default") + ("" if i == 0 else f"@{prec}"): Denoiser(spec, precision=prec)
+                     for spec in (args.models or [args.model]) for i, prec in enumerate(args.precisions)}
         for d in denoisers.values():  # first calls pay one-off set-up: keep it out of the timings
             d.denoise_array(np.full((64, 64, 3), 0.5, dtype=np.float32))
         record = run_record("benchmarks.evaluate", argv)
@@ -204,7 +213,7 @@ def write_results(out: Path, rows: dict[str, Any], images: dict[str, dict[str, n
     summary = summarize(rows, spps, ceiling_db)
     first = next(iter(denoisers.values()))
     models = {name: {"path": str(d.path), "sha256": d.sha256, "config": d.config.to_dict(),
-                     "step": d.meta.get("step")} for name, d in denoisers.items()}
+                     "step": d.meta.get("step"), "precision": d.precision} for name, d in denoisers.items()}
     result = {**record, "path": PATH, "model": next(iter(models.values())), "models": models, "spp": spps,
               "seed": SEED, "ceiling_db": ceiling_db, "summary": summary, "scenes": rows}
     out.mkdir(parents=True, exist_ok=True)

@@ -11,7 +11,10 @@ machine makes every number worse and small images worst: torch's two threads wai
 other at every layer). ``--threads`` sets torch's threads (0: the Denoiser's own choice).
 
     python -m benchmarks.inference [--quick] [--sizes 128x128,256x256,1280x720,1920x1080]
-        [--models u-fast,u-balanced,u-high,fast] [--repeat 5] [--threads N]
+        [--models u-fast,u-balanced,u-high,fast] [--precisions float32,bfloat16] [--repeat 5] [--threads N]
+
+Each model runs in every ``--precisions`` float format (:mod:`model.precision`; a bfloat16 column
+is named ``model@bfloat16``); the JSON records whether the CPU computes bfloat16 natively.
 
 Also prints where the time of one call goes at the smallest size (stages of the chain).
 ``--quick``: 256x256 only, one run. Prints a table and writes benchmarks/results/inference.json.
@@ -35,6 +38,7 @@ from imaging.atomic_io import write_json_atomic
 from model.architectures import build_model
 from model.checkpoint import save_checkpoint
 from model.config import PRESETS, preset
+from model.precision import native_bfloat16
 from model.unet import macs_per_pixel
 from pipeline.denoise import Denoiser
 from pipeline.oidn import oidn_available, oidn_denoise
@@ -131,6 +135,11 @@ def stages(den: Denoiser, width: int, height: int, repeat: int) -> dict[str, flo
     return result
 
 
+def _key(name: str, precision: str) -> str:
+    """The column of a model in a float format: its name for float32, ``name@precision`` else."""
+    return name if precision == "float32" else f"{name}@{precision}"
+
+
 def table(results: dict[str, Any]) -> list[str]:
     names = results["models"]
     lines = [f"{'size':>10} " + " ".join(f"{n + ' s/MP':>16}" for n in names) + f" {'OIDN s/MP':>10} "
@@ -149,22 +158,28 @@ def main() -> None:
     p.add_argument("--sizes", default=",".join(f"{w}x{h}" for w, h in SIZES))
     p.add_argument("--models", default="u-fast,u-balanced,u-high,fast",
                    help="preset names (random weights) or checkpoint files")
+    p.add_argument("--precisions", default="float32,bfloat16",
+                   help="float formats of the networks (model.precision.PRECISIONS)")
     p.add_argument("--repeat", type=int, default=5)
     p.add_argument("--threads", type=int, default=0, help="torch threads (0: the Denoiser's choice)")
     args = p.parse_args()
     sizes = ([(256, 256)] if args.quick
              else [tuple(int(v) for v in s.split("x")) for s in args.sizes.split(",")])
     repeat = 1 if args.quick else args.repeat
-    names = args.models.split(",")
+    precisions = args.precisions.split(",")
     load_before = os.getloadavg()
     with tempfile.TemporaryDirectory() as tmp:
-        models = {name: Denoiser(_checkpoint(name, Path(tmp)), threads=args.threads or None) for name in names}
+        files = {name: _checkpoint(name, Path(tmp)) for name in args.models.split(",")}
+        models = {_key(name, prec): Denoiser(path, threads=args.threads or None, precision=prec)
+                  for name, path in files.items() for prec in precisions}
+        names = list(models)
         results: dict[str, Any] = {
             "command": " ".join(["python -m benchmarks.inference", *sys.argv[1:]]),
             "date": time.strftime("%Y-%m-%d %H:%M"),
             "machine": {"platform": platform.platform(), "processor": platform.processor(),
                         "cpus": os.cpu_count(), "torch": torch.__version__,
-                        "torch_threads": torch.get_num_threads(), "loadavg_before": load_before},
+                        "torch_threads": torch.get_num_threads(), "loadavg_before": load_before,
+                        "native_bfloat16": native_bfloat16()},
             "quick": args.quick, "repeat": repeat, "models": names,
             "macs_per_pixel": {n: _macs(m.config) for n, m in models.items()},
             "sizes": {},

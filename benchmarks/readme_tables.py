@@ -189,7 +189,9 @@ def inference(results: Results) -> list[str]:
         rows.append([size, *(_f(row.get(n, {}).get("s_per_mp")) for n in names), *ratios])
     macs = data.get("macs_per_pixel", {})
     note = ("Seconds per megapixel of one call, median of the runs; OIDN 2.5 colour-only on the same image in "
-            "the same run; the last columns: each model's time over OIDN's."
+            "the same run; the last columns: each model's time over OIDN's. `model@bfloat16`: the network in "
+            "bfloat16 (model/precision.py; this CPU computes it natively: "
+            f"{'yes' if data['machine'].get('native_bfloat16') else 'no'})."
             + (" MACs per pixel: " + ", ".join(f"{n} {macs[n] / 1e3:.1f}k" for n in models if n in macs) + "."
                if macs else ""))
     return [caption("python -m benchmarks.inference", "benchmarks/results/inference.json", data, note), "",

@@ -6,6 +6,7 @@ All take an NxCxHxW transfer-space image (:attr:`ModelConfig.image_channels`) an
 """
 from __future__ import annotations
 
+import torch
 from torch import nn
 
 from model import unet
@@ -33,10 +34,11 @@ def alignment(config: ModelConfig) -> int:
     return unet.alignment(config) if config.multiscale else 1
 
 
-def prepare_for_inference(model: nn.Module) -> nn.Module:
+def prepare_for_inference(model: nn.Module, dtype: torch.dtype = torch.float32) -> nn.Module:
     """A folded copy of a trained network for inference (equal up to float32 rounding; the
-    original is left unchanged): :mod:`model.inference_net` or :mod:`model.inference_unet`."""
-    return InferenceUNet(model) if model.config.multiscale else InferenceNet(model)
+    original is left unchanged): :mod:`model.inference_net` or :mod:`model.inference_unet`,
+    computing in ``dtype`` (:mod:`model.precision`; input and output stay float32)."""
+    return InferenceUNet(model, dtype) if model.config.multiscale else InferenceNet(model, dtype)
 
 
 def count_parameters(model: nn.Module) -> int:

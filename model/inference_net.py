@@ -17,6 +17,8 @@ What changes against the training module (eval mode), and why it is exact up to 
   preallocated buffer instead of ``torch.cat``-ing an ever-growing tensor (O(L) instead of O(L^2)
   memory traffic).
 * **channels_last** (NHWC) activations and weights, the layout oneDNN convolves without reordering.
+* **Optionally bfloat16** (``dtype``, :mod:`model.precision`): weights and activations; the input
+  is built and the residual added in float32.
 
 Input and output are those of the original model: Nx3xHxW (Nx9xHxW with aux) transfer-space image
 -> Nx3xHxW transfer-space RGB. ``tests/test_infer_speedups.py`` bounds the difference.
@@ -133,9 +135,10 @@ class _ClampConv1x1(nn.Module):
 class InferenceNet(nn.Module):
     """The folded, concatenation-free, channels_last equivalent of a FlatDenseNet in eval mode."""
 
-    def __init__(self, model: FlatDenseNet) -> None:
+    def __init__(self, model: FlatDenseNet, dtype: torch.dtype = torch.float32) -> None:
         super().__init__()
         self.config: ModelConfig = model.config
+        self.dtype = dtype
         self.width = model.body.out_channels
         with torch.no_grad():
             conv0, bn0, _ = model.head
@@ -146,6 +149,7 @@ class InferenceNet(nn.Module):
             tail_bn, _, tail_conv = model.tail
             self.tail_pre = _AffineReLU(*bn_affine(tail_bn))
             self.tail = _Conv(tail_conv.weight.detach().clone(), None, relu=False)
+        self.to(dtype)
         self.eval()
 
     def _dense(self, x: torch.Tensor) -> torch.Tensor:
@@ -164,8 +168,8 @@ class InferenceNet(nn.Module):
         return x
 
     def forward(self, image: torch.Tensor) -> torch.Tensor:
-        x = network_input(image).contiguous(memory_format=torch.channels_last)
+        x = network_input(image).contiguous(memory_format=torch.channels_last).to(self.dtype)
         x = self.head(x)
         x = self._dense(x) if self.config.arch == "densenet" else self._plain(x)
-        out = self.tail(self.tail_pre(x))
+        out = self.tail(self.tail_pre(x)).float()
         return out + image[:, :3] if self.config.output == "residual" else out

@@ -16,6 +16,8 @@ encoder/decoder shape allows:
   ``[up | skip | ...]``, so their weights are permuted to match.
 * **Nearest upsampling written in place** through a strided view of the buffer (one pass).
 * **channels_last** activations and weights.
+* **Optionally bfloat16** (``dtype``, :mod:`model.precision`): weights and activations; the input
+  is built and the residual added in float32.
 
 Input and output are those of the original model: NxCxHxW transfer-space image -> Nx3xHxW
 transfer-space RGB. ``tests/test_inference_unet.py`` bounds the difference.
@@ -77,9 +79,10 @@ def _buffer(x: torch.Tensor, channels: int, h: int, w: int) -> torch.Tensor:
 class InferenceUNet(nn.Module):
     """The folded, concatenation-free, channels_last equivalent of a MultiScaleDenoiser in eval mode."""
 
-    def __init__(self, model: MultiScaleDenoiser) -> None:
+    def __init__(self, model: MultiScaleDenoiser, dtype: torch.dtype = torch.float32) -> None:
         super().__init__()
         self.config: ModelConfig = model.config
+        self.dtype = dtype
         self.dense = model.config.arch == "dense_unet"
         n = model.config.levels
         with torch.no_grad():
@@ -113,6 +116,7 @@ class InferenceUNet(nn.Module):
             self.tail_pre = _AffineReLU(scale, shift)
             self.tail = _Conv(tail_weight, None, relu=False)
             self.skip = _Conv(model.skip.weight.detach().clone(), model.skip.bias.detach().clone(), relu=False)
+        self.to(dtype)
         self.eval()
 
     def _encode(self, x: torch.Tensor, level: int) -> torch.Tensor:
@@ -149,7 +153,7 @@ class InferenceUNet(nn.Module):
     def forward(self, image: torch.Tensor) -> torch.Tensor:
         h, w = image.shape[-2:]
         x = pad_to_alignment(network_input(image), alignment(self.config))
-        raw = F.pixel_unshuffle(x, 2).contiguous(memory_format=torch.channels_last)
+        raw = F.pixel_unshuffle(x, 2).contiguous(memory_format=torch.channels_last).to(self.dtype)
         x = self.stem(raw)
         levels = []
         for i, down in enumerate(self.down):
@@ -162,5 +166,5 @@ class InferenceUNet(nn.Module):
             x = self._decode(x, levels[i], i)
         y = self.tail(self.tail_pre(x))
         y += self.skip(raw)
-        out = F.pixel_shuffle(y, 2)[..., :h, :w]
+        out = F.pixel_shuffle(y.float(), 2)[..., :h, :w]
         return out + image[:, :3] if self.config.output == "residual" else out

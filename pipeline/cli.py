@@ -11,9 +11,13 @@ from typing import Any
 from imaging.progress import tqdm_bars
 from imaging.render import DEFAULT_MAX_MEMORY_MB
 from imaging.usage import OneLineParser, int_list, name_list, name_value, positive_float, positive_int
+from model.precision import PRECISIONS
 from pipeline.evaluation import RenderSettings
 
 
+PRECISION_HELP = ("float format of the network: bfloat16 halves its time on CPUs with native bfloat16 "
+                  "(AMX, AVX512-BF16) at a measured cost in quality (docs/speed.md); auto: bfloat16 "
+                  "where the CPU has it natively, else float32")
 SKIP_HELP = ("leave the 64-px cells whose noise (transfer-space standard deviation from the halves) is "
              "below NOISE out of the network; they keep the render, as the noise guard would "
              "(benchmarks/skip.py measures time and change; default: the network everywhere)")
@@ -33,6 +37,7 @@ def add_render_arguments(p: argparse.ArgumentParser, reference_required: bool, g
                    help="memory bound of the render's films and of one denoiser tile")
     p.add_argument("--no-noise-guard", action="store_true", help=guard_help)
     p.add_argument("--skip-below", type=positive_float, metavar="NOISE", help=SKIP_HELP)
+    p.add_argument("--precision", choices=PRECISIONS, default="auto", help=PRECISION_HELP)
 
 
 def render_settings(args: argparse.Namespace) -> RenderSettings:
@@ -40,7 +45,7 @@ def render_settings(args: argparse.Namespace) -> RenderSettings:
     return RenderSettings(scene=args.scene, resolution=tuple(args.res) if args.res else None, seed=args.seed,
                           params=dict(args.param), max_memory_mb=args.max_memory_mb,
                           noise_guard=not args.no_noise_guard, skip_below=args.skip_below,
-                          reference=args.reference,
+                          precision=args.precision, reference=args.reference,
                           reference_spp=args.reference_spp)
 
 
@@ -120,6 +125,7 @@ def denoise_parser() -> OneLineParser:
     p.add_argument("--reference", help="reference image: print metrics")
     p.add_argument("--max-memory-mb", type=float, default=DEFAULT_MAX_MEMORY_MB, help="tile memory bound")
     p.add_argument("--skip-below", type=positive_float, metavar="NOISE", help=SKIP_HELP)
+    p.add_argument("--precision", choices=PRECISIONS, default="auto", help=PRECISION_HELP)
     return p
 
 
@@ -139,7 +145,7 @@ def denoise_main(argv: list[str] | None = None) -> int:
                             model=args.model, reference=args.reference, layer=args.layer,
                             variance_layer=args.variance_layer, rgb_only=args.rgb_only, spp=args.spp,
                             noise_guard=not args.no_noise_guard, max_memory_mb=args.max_memory_mb,
-                            skip_below=args.skip_below)
+                            skip_below=args.skip_below, precision=args.precision)
     result, code = parser.attempt(lambda: denoise_file(cfg))
     if code:
         return code

@@ -98,17 +98,24 @@ class Denoiser:
     (:mod:`model.inference_net`, :mod:`model.inference_unet`; equal up to float32 rounding)
     instead of the training module. ``skip_below``: with a variance, leave the parts of the image
     whose transfer-space noise is below this out of the network (:func:`model.infer.denoise_image`).
+    ``precision``: the float format of the folded network (:mod:`model.precision`: ``auto`` is
+    bfloat16 on CPUs with native bfloat16, else float32; the training module is always float32).
     """
 
     def __init__(self, checkpoint: str | Path | None = None,
                  max_memory_mb: float = DEFAULT_MAX_MEMORY_MB, threads: int | None = None,
-                 optimize: bool = True, skip_below: float | None = None) -> None:
+                 optimize: bool = True, skip_below: float | None = None, precision: str = "auto") -> None:
         import torch
 
         from model.checkpoint import load_model
         from model.architectures import prepare_for_inference, receptive_radius
+        from model.precision import compute_dtype
 
         path = resolve_model(checkpoint)
+        try:
+            self.dtype = compute_dtype(precision) if optimize else torch.float32
+        except ValueError as exc:
+            raise DenoiserError(str(exc)) from None
         if not 0 < max_memory_mb < float("inf"):  # also refuses NaN
             raise DenoiserError(f"max memory must be positive and finite, got {max_memory_mb} MB")
         if threads:
@@ -118,7 +125,7 @@ class Denoiser:
         self.model, self.config, self.meta = load_model(path)
         self.model.eval()
         self.optimize = optimize
-        self.net = prepare_for_inference(self.model) if optimize else self.model
+        self.net = prepare_for_inference(self.model, self.dtype) if optimize else self.model
         self.max_memory_mb = float(max_memory_mb)
         self.margin = receptive_radius(self.config)
         self.skip_below = skip_below
@@ -126,6 +133,11 @@ class Denoiser:
     @property
     def name(self) -> str:
         return self.path.name
+
+    @property
+    def precision(self) -> str:
+        """The float format the network computes in: ``float32`` or ``bfloat16``."""
+        return str(self.dtype).removeprefix("torch.")
 
     @property
     def sha256(self) -> str:

@@ -53,6 +53,7 @@ class DenoiseFileConfig:
     noise_guard: bool = True
     max_memory_mb: float = 1024.0
     skip_below: float | None = None
+    precision: str = "auto"
 
 
 @dataclass
@@ -149,7 +150,8 @@ def denoise_file(cfg: DenoiseFileConfig) -> dict[str, Any]:
         raise DenoiserError(f"expected one input or two halves, got {len(cfg.inputs)} files")
     if len(cfg.inputs) == 2 and cfg.variance_layer is not None:
         raise DenoiserError("two halves give the variance: --variance-layer is for a single input")
-    denoiser = Denoiser(cfg.model, max_memory_mb=cfg.max_memory_mb, skip_below=cfg.skip_below)
+    denoiser = Denoiser(cfg.model, max_memory_mb=cfg.max_memory_mb, skip_below=cfg.skip_below,
+                        precision=cfg.precision)
     images = [read_input(p, cfg.layer, cfg.variance_layer) for p in cfg.inputs]
     image = images[0] if len(images) == 1 else combine_halves(*images, max_bytes=denoiser.max_bytes)
     ref = read_input(cfg.reference).rgb if cfg.reference else None
@@ -165,7 +167,8 @@ def denoise_file(cfg: DenoiseFileConfig) -> dict[str, Any]:
     out: dict[str, Any] = {
         "input": cfg.inputs[0] if len(cfg.inputs) == 1 else list(cfg.inputs), "output": cfg.output,
         "layer": image.layer.name if image.layer else None, "layout": layout,
-        "denoise_s": result.seconds, "model": denoiser.name, "nonfinite_values": result.nonfinite,
+        "denoise_s": result.seconds, "model": denoiser.name, "precision": denoiser.precision,
+        "nonfinite_values": result.nonfinite,
         "negative_values": result.negative,
         "noise_guard": None if variance is None else {
             "variance": image.variance_layer, "spp": spp, "strength": strength,

@@ -43,7 +43,8 @@ class RenderSettings:
     ``$parameters``; ``max_memory_mb`` bounds the render's films and the denoiser's tiles;
     ``noise_guard``: render in two halves and guard the models (off: one piece, the network's
     output as it is); ``skip_below``: with the halves, leave the parts whose noise is below this out
-    of the network (:class:`pipeline.denoise.Denoiser`; None: run it everywhere); the reference is an EXR file or a render at ``reference_spp`` (another seed)."""
+    of the network (:class:`pipeline.denoise.Denoiser`; None: run it everywhere); ``precision``: the
+    denoisers' float format (:mod:`model.precision`); the reference is an EXR file or a render at ``reference_spp`` (another seed)."""
 
     scene: str
     resolution: tuple[int, int] | None = None
@@ -52,6 +53,7 @@ class RenderSettings:
     max_memory_mb: float = DEFAULT_MAX_MEMORY_MB
     noise_guard: bool = True
     skip_below: float | None = None
+    precision: str = "auto"
     reference: str | None = None
     reference_spp: int | None = None
 
@@ -69,8 +71,8 @@ class RenderSettings:
 
 
 def make_denoiser(model: str | Path | None, settings: RenderSettings) -> Denoiser:
-    """The denoiser of ``model`` with the settings' memory bound and, with the halves, skipping."""
-    return Denoiser(model, max_memory_mb=settings.max_memory_mb,
+    """The denoiser of ``model`` with the settings' memory bound, precision and, with the halves, skipping."""
+    return Denoiser(model, max_memory_mb=settings.max_memory_mb, precision=settings.precision,
                     skip_below=settings.skip_below if settings.noise_guard else None)
 
 

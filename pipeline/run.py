@@ -197,7 +197,8 @@ def _metrics(run: _Run) -> dict[str, Any]:
     h, w = noisy.rgb.shape[:2]
     metrics: dict[str, Any] = {
         "scene": str(cfg.scene), "spp": run.spp, "resolution": [w, h], "seed": cfg.seed,
-        "model": {"name": denoiser.name, "sha256": denoiser.sha256, "config": denoiser.config.to_dict()},
+        "model": {"name": denoiser.name, "sha256": denoiser.sha256, "precision": denoiser.precision,
+                  "config": denoiser.config.to_dict()},
         "mitsuba": metadata.version("mitsuba"), "variant": noisy.variant, "timings": run.timings,
         "sanitized": {"render_nonfinite_pixels": noisy.nonfinite, "denoiser_nonfinite_values":
                       result.nonfinite, "denoiser_negative_values": result.negative},

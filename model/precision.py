@@ -1,0 +1,53 @@
+"""The float format the folded inference networks compute in.
+
+``float32``: exact up to float32 rounding (the reference). ``bfloat16``: the convolutions and the
+activations between them in bfloat16 (8-bit mantissa, float32 accumulation inside oneDNN); the
+network's input (transfer-space RGB, gradients, noise channels) is built in float32 and its
+output converted back to float32 before the residual is added, so the noisy image itself is not
+rounded. On CPUs with native bfloat16 arithmetic (AMX or AVX512-BF16) this halves the network's
+time; elsewhere oneDNN emulates it and it is slower than float32. ``auto`` picks bfloat16 only
+where the CPU has it natively. What it costs in quality is measured by ``benchmarks/evaluate.py
+--precision`` and its speed by ``benchmarks/inference.py`` (docs/speed.md).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    import torch
+
+PRECISIONS = ("auto", "float32", "bfloat16")
+NATIVE_BF16_FLAGS = frozenset({"amx_bf16", "avx512_bf16"})
+
+
+def cpu_flags(cpuinfo: str | Path = "/proc/cpuinfo") -> frozenset[str]:
+    """The feature flags of the first CPU listed in ``cpuinfo`` (empty where it cannot be read)."""
+    try:
+        text = Path(cpuinfo).read_text(errors="replace")
+    except OSError:
+        return frozenset()
+    for line in text.splitlines():
+        key, _, value = line.partition(":")
+        if key.strip() == "flags":
+            return frozenset(value.split())
+    return frozenset()
+
+
+def native_bfloat16(cpuinfo: str | Path = "/proc/cpuinfo") -> bool:
+    """True when the CPU computes bfloat16 natively (AMX-BF16 or AVX512-BF16)."""
+    return bool(cpu_flags(cpuinfo) & NATIVE_BF16_FLAGS)
+
+
+def compute_dtype(precision: str, cpuinfo: str | Path = "/proc/cpuinfo") -> torch.dtype:
+    """The torch dtype of ``precision`` (one of :data:`PRECISIONS`); raises ValueError otherwise.
+    (torch is imported here: the CLIs read :data:`PRECISIONS` before they need torch.)"""
+    import torch
+
+    if precision == "float32":
+        return torch.float32
+    if precision == "bfloat16":
+        return torch.bfloat16
+    if precision == "auto":
+        return torch.bfloat16 if native_bfloat16(cpuinfo) else torch.float32
+    raise ValueError(f"precision must be one of {', '.join(PRECISIONS)}, got {precision!r}")
