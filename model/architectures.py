@@ -55,12 +55,16 @@ FOLDED_ALLOWANCE = 1.1
 MODULE_ALLOWANCE = 1.6
 
 
-def inference_bytes_per_pixel(config: ModelConfig, folded: bool = True) -> float:
+def inference_bytes_per_pixel(config: ModelConfig, folded: bool = True, itemsize: int = 4) -> float:
     """Peak resident bytes per input pixel of one forward pass of a tile, beyond a fixed cost
-    (:data:`model.infer.TILE_FIXED_BYTES`): the folded network's live float32 tensors
+    (:data:`model.infer.TILE_FIXED_BYTES`): the folded network's live tensors
     (:func:`live_channels_per_pixel`) times the measured allowance of the folded network
-    (``folded``) or of the training module."""
-    return 4.0 * live_channels_per_pixel(config) * (FOLDED_ALLOWANCE if folded else MODULE_ALLOWANCE)
+    (``folded``) or of the training module. ``itemsize``: bytes per value of the folded network's
+    activations (2 in bfloat16, :mod:`model.precision`); its input image stays float32."""
+    live = live_channels_per_pixel(config)
+    cimg = config.image_channels
+    itemsize = itemsize if folded else 4
+    return (4.0 * cimg + itemsize * (live - cimg)) * (FOLDED_ALLOWANCE if folded else MODULE_ALLOWANCE)
 
 
 def live_channels_per_pixel(config: ModelConfig) -> float:

@@ -4,9 +4,12 @@ exposure (an image whose log-average luminance lies outside the training data's 
 by a power of two towards the training median, undone at the end) -> sanitise (NaN/Inf/negative
 -> 0, > HDR_MAX clamped) -> transfer (+ the noise channels of :mod:`model.noise_input` for a model
 that takes them) -> network on core tiles with a margin of the receptive-field radius, on the
-network's alignment grid (exact: :mod:`imaging.tiling`) -> clamp to [0, 1] in transfer space
-(radiance 0..HDR_MAX, so a wild output cannot overflow to Inf) -> inverse transfer -> undo the
-exposure. All of it tile by tile: no whole-image temporaries besides the output. The caller sizes
+network's alignment grid (exact: :mod:`imaging.tiling`) -> clamp in transfer space to [0, the
+largest input value (of any channel) within ``BOUND_RADIUS`` pixels] (:func:`neighbourhood_max`; a
+denoiser averages, so an output brighter than every input around it is a network failure, not
+detail: the multi-scale nets were measured turning a firefly's neighbourhood into a patch of 65504,
+benchmarks/results/evaluate.json; never above 1, radiance HDR_MAX, so nothing overflows to Inf)
+-> inverse transfer -> undo the exposure. All of it tile by tile: no whole-image temporaries besides the output. The caller sizes
 the tiles (:func:`tile_bytes_per_pixel` per window pixel); the passes over the whole image
 (exposure, the skip test below) work in blocks within ``max_bytes``.
 
@@ -38,10 +41,17 @@ SKIP_CELL = 64  # pixels per side of the cells the skip test looks at (a multipl
 # bound when the caller gives none.
 PASS_BYTES_PER_PIXEL = 320
 DEFAULT_PASS_BYTES = 64 * 2**20
+# Scratch of a tile's steps around the network (transfer, noise channels, output bound, inverse)
+# per window pixel, beside its float32 input channels: a bound of what was measured with the
+# network included (u-fast in bfloat16 with the noise input: 150 B/px at 1024^2); the network's
+# own estimate is larger for every preset in float32.
+TILE_CHAIN_BYTES_PER_PIXEL = 160
 # One tile's fixed cost beside its pixels: the first forward pass's oneDNN kernels and reordered
 # weights, the allocator's small blocks (benchmarks/denoise_memory.py --parts calibrate).
 TILE_FIXED_BYTES = 32 * 2**20
 Aux = np.ndarray | tuple[np.ndarray, np.ndarray] | None
+# Radius of the window whose largest input value bounds each output value (at most the margin).
+BOUND_RADIUS = 8
 
 
 # Log-average luminance (geometric mean over pixels with luminance > 0; a firefly barely moves it)
@@ -104,12 +114,13 @@ def _scaled(rgb: np.ndarray, scale: float) -> np.ndarray:
     return sanitize(rgb)
 
 
-def tile_bytes_per_pixel(config: ModelConfig, folded: bool = True) -> float:
+def tile_bytes_per_pixel(config: ModelConfig, folded: bool = True, itemsize: int = 4) -> float:
     """Peak scratch bytes per window pixel of one tile of :func:`denoise_image`, beyond
     :data:`TILE_FIXED_BYTES`: the forward pass (:func:`model.architectures.inference_bytes_per_pixel`)
     or the chain's steps around it (transfer, noise channels, inverse, with the input tensor),
     whichever needs more."""
-    return max(inference_bytes_per_pixel(config, folded), PASS_BYTES_PER_PIXEL + 4.0 * config.image_channels)
+    return max(inference_bytes_per_pixel(config, folded, itemsize),
+               TILE_CHAIN_BYTES_PER_PIXEL + 4.0 * config.image_channels)
 
 
 def noisy_region(color: np.ndarray, variance: np.ndarray, transfer: TransferFunction, scale: float,
@@ -138,6 +149,28 @@ def noisy_region(color: np.ndarray, variance: np.ndarray, transfer: TransferFunc
     if not rows:
         return None
     return min(rows), min(height, max(rows) + cell), min(cols), min(width, max(cols) + cell)
+
+
+def _window_max(x: torch.Tensor, dim: int, radius: int) -> torch.Tensor:
+    """Largest value of ``x`` within ``radius`` along ``dim`` (the window clipped at the ends:
+    the ends are repeated, which changes no maximum), by doubling: O(log radius) passes."""
+    if radius == 0:
+        return x
+    n = x.shape[dim]
+    reps = [1] * x.dim()
+    reps[dim] = radius
+    m = torch.cat([x.narrow(dim, 0, 1).repeat(reps), x, x.narrow(dim, n - 1, 1).repeat(reps)], dim)
+    width, span = 1, 2 * radius + 1
+    while 2 * width <= span:  # m[i] = max over [i, i + 2*width)
+        m = torch.maximum(m.narrow(dim, 0, m.shape[dim] - width), m.narrow(dim, width, m.shape[dim] - width))
+        width *= 2
+    return torch.maximum(m.narrow(dim, 0, n), m.narrow(dim, span - width, n))
+
+
+def neighbourhood_max(image: torch.Tensor, radius: int) -> torch.Tensor:
+    """HxW: the largest value of HxWxC ``image`` (any channel) within the (2r+1)^2 window around
+    each pixel, the window clipped at the image's border."""
+    return _window_max(_window_max(image.amax(dim=2), 1, radius), 0, radius)
 
 
 def _aux_window(aux: Aux, t: Tile) -> torch.Tensor:
@@ -172,6 +205,7 @@ def denoise_image(model: nn.Module, color: np.ndarray, aux: Aux = None,
     height, width = color.shape[:2]
     scale = exposure_scale(color, block_rows(width, PASS_BYTES_PER_PIXEL, max_bytes, 256))
     align = alignment(config)
+    radius = min(BOUND_RADIUS, receptive_radius(config))  # within the margin: tiles see the whole window
     region = None
     out = None
     if variance is not None and skip_below is not None:
@@ -196,10 +230,13 @@ def denoise_image(model: nn.Module, color: np.ndarray, aux: Aux = None,
             x[0, config.noise_start:] = torch.from_numpy(
                 noise_channels(rgb, var, transfer, config.noise_radius, encoded)).permute(2, 0, 1)
             del var
+        bound = neighbourhood_max(encoded, radius)
         del rgb, encoded
         y = model(x)[0]
         del x
-        y = transfer.inverse(torch.nan_to_num_(y, nan=0.0).clamp_(0.0, 1.0)).permute(1, 2, 0).numpy()
+        y = torch.minimum(torch.nan_to_num_(y, nan=0.0).clamp_(0.0, 1.0), bound, out=y)
+        del bound
+        y = transfer.inverse(y).permute(1, 2, 0).numpy()
         return y if scale == 1.0 else np.divide(y, np.float32(scale), out=y)
 
     was_training = model.training

@@ -157,7 +157,7 @@ class Denoiser:
         """Peak scratch bytes per window pixel of one tile (:func:`model.infer.tile_bytes_per_pixel`)."""
         from model.infer import tile_bytes_per_pixel
 
-        return tile_bytes_per_pixel(self.config, self.optimize)
+        return tile_bytes_per_pixel(self.config, self.optimize, self.dtype.itemsize)
 
     def core_size(self) -> int:
         """Tile core side that keeps one tile within ``max_memory_mb``: its window's pixels at

@@ -12,7 +12,7 @@ import torch
 
 from model.checkpoint import save_checkpoint
 from model.config import PRESETS, ModelConfig
-from model.infer import denoise_image, noisy_region
+from model.infer import BOUND_RADIUS, denoise_image, neighbourhood_max, noisy_region
 from model.architectures import alignment, build_model
 from model.transfer import HDR_MAX, get_transfer
 
@@ -45,6 +45,37 @@ def test_denoise_image_range_and_shape() -> None:
     assert out.shape == (20, 24, 3) and out.dtype == np.float32
     assert np.isfinite(out).all() and out.min() >= 0.0 and out.max() <= HDR_MAX * (1 + 1e-5)
     assert not model.training
+
+
+def _brute_max(image: np.ndarray, r: int) -> np.ndarray:
+    h, w = image.shape[:2]
+    return np.array([[image[max(0, y - r):y + r + 1, max(0, x - r):x + r + 1].max() for x in range(w)]
+                     for y in range(h)], dtype=image.dtype)
+
+
+@pytest.mark.parametrize("radius", [0, 1, 3, 8, 40])
+def test_neighbourhood_max_is_the_clipped_window_max(radius: int) -> None:
+    image = torch.from_numpy(np.random.default_rng(radius).random((23, 17, 3)).astype(np.float32))
+    np.testing.assert_array_equal(neighbourhood_max(image, radius).numpy(), _brute_max(image.numpy(), radius))
+
+
+def test_an_exploding_output_is_bounded_by_the_input_around_it() -> None:
+    """A network that returns a blob of huge values (as an under-trained multi-scale net did
+    around a firefly) cannot make a pixel brighter than the brightest input within BOUND_RADIUS."""
+    model = _model(output="direct")
+    with torch.no_grad():
+        bn, _, conv = model.tail  # BN-ReLU-conv3x3: a constant 1 into all-ones weights
+        bn.weight.zero_()
+        bn.bias.fill_(1.0)
+        conv.weight.fill_(1.0)  # transfer-space output >= 4 * channels: far beyond radiance HDR_MAX
+    color = np.full((40, 48, 3), 0.1, np.float32)
+    color[20, 30] = [3.0, 2.0, 1.0]  # one firefly
+    out = denoise_image(model, color, core=16)
+    pu = get_transfer(model.config.transfer)
+    bound = pu.inverse(torch.from_numpy(_brute_max(pu.forward(torch.from_numpy(color)).amax(2).numpy(),
+                                                   BOUND_RADIUS))).numpy()
+    np.testing.assert_allclose(out, np.repeat(bound[..., None], 3, axis=2), rtol=1e-5)
+    assert out.max() == pytest.approx(3.0, rel=1e-5) and out[0, 0, 0] == pytest.approx(0.1, rel=1e-5)
 
 
 def test_identity_residual_model_returns_input() -> None:
