@@ -6,8 +6,11 @@ network's input (transfer-space RGB, gradients, noise channels) is built in floa
 output converted back to float32 before the residual is added, so the noisy image itself is not
 rounded. On CPUs with native bfloat16 arithmetic (AMX or AVX512-BF16) this halves the network's
 time; elsewhere oneDNN emulates it and it is slower than float32. ``auto`` picks bfloat16 only
-where the CPU has it natively. What it costs in quality is measured by ``benchmarks/evaluate.py
---precision`` and its speed by ``benchmarks/inference.py`` (docs/speed.md).
+where the CPU has it natively and for the multi-scale networks: on the eval scenes (``python -m
+benchmarks.evaluate --precisions float32,bfloat16``) the u-balanced checkpoint lost nothing
+(31.59 / 34.90 / 39.14 against 31.59 / 34.91 / 39.15 dB at 4 / 16 / 128 spp) but the flat
+``fast`` lost 0.5 dB at 128 spp (40.86 against 41.36; its full-resolution features carry small
+corrections that bfloat16 rounds away). Its speed: ``benchmarks/inference.py`` (docs/speed.md).
 """
 from __future__ import annotations
 
@@ -39,9 +42,11 @@ def native_bfloat16(cpuinfo: str | Path = "/proc/cpuinfo") -> bool:
     return bool(cpu_flags(cpuinfo) & NATIVE_BF16_FLAGS)
 
 
-def compute_dtype(precision: str, cpuinfo: str | Path = "/proc/cpuinfo") -> torch.dtype:
-    """The torch dtype of ``precision`` (one of :data:`PRECISIONS`); raises ValueError otherwise.
-    (torch is imported here: the CLIs read :data:`PRECISIONS` before they need torch.)"""
+def compute_dtype(precision: str, multiscale: bool = True, cpuinfo: str | Path = "/proc/cpuinfo") -> torch.dtype:
+    """The torch dtype of ``precision`` (one of :data:`PRECISIONS`) for a network that is
+    ``multiscale`` or flat (``auto`` keeps flat networks in float32); raises ValueError for an
+    unknown precision. (torch is imported here: the CLIs read :data:`PRECISIONS` before they
+    need torch.)"""
     import torch
 
     if precision == "float32":
@@ -49,5 +54,5 @@ def compute_dtype(precision: str, cpuinfo: str | Path = "/proc/cpuinfo") -> torc
     if precision == "bfloat16":
         return torch.bfloat16
     if precision == "auto":
-        return torch.bfloat16 if native_bfloat16(cpuinfo) else torch.float32
+        return torch.bfloat16 if multiscale and native_bfloat16(cpuinfo) else torch.float32
     raise ValueError(f"precision must be one of {', '.join(PRECISIONS)}, got {precision!r}")

@@ -17,7 +17,7 @@ from pipeline.evaluation import RenderSettings
 
 PRECISION_HELP = ("float format of the network: bfloat16 halves its time on CPUs with native bfloat16 "
                   "(AMX, AVX512-BF16) at a measured cost in quality (docs/speed.md); auto: bfloat16 "
-                  "where the CPU has it natively, else float32")
+                  "for the multi-scale nets where the CPU has it natively, else float32")
 SKIP_HELP = ("leave the 64-px cells whose noise (transfer-space standard deviation from the halves) is "
              "below NOISE out of the network; they keep the render, as the noise guard would "
              "(benchmarks/skip.py measures time and change; default: the network everywhere)")

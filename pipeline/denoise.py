@@ -99,7 +99,8 @@ class Denoiser:
     instead of the training module. ``skip_below``: with a variance, leave the parts of the image
     whose transfer-space noise is below this out of the network (:func:`model.infer.denoise_image`).
     ``precision``: the float format of the folded network (:mod:`model.precision`: ``auto`` is
-    bfloat16 on CPUs with native bfloat16, else float32; the training module is always float32).
+    bfloat16 for a multi-scale network on a CPU with native bfloat16, else float32; the training
+    module is always float32).
     """
 
     def __init__(self, checkpoint: str | Path | None = None,
@@ -109,13 +110,11 @@ class Denoiser:
 
         from model.checkpoint import load_model
         from model.architectures import prepare_for_inference, receptive_radius
-        from model.precision import compute_dtype
+        from model.precision import PRECISIONS, compute_dtype
 
         path = resolve_model(checkpoint)
-        try:
-            self.dtype = compute_dtype(precision) if optimize else torch.float32
-        except ValueError as exc:
-            raise DenoiserError(str(exc)) from None
+        if precision not in PRECISIONS:
+            raise DenoiserError(f"precision must be one of {', '.join(PRECISIONS)}, got {precision!r}")
         if not 0 < max_memory_mb < float("inf"):  # also refuses NaN
             raise DenoiserError(f"max memory must be positive and finite, got {max_memory_mb} MB")
         if threads:
@@ -125,6 +124,7 @@ class Denoiser:
         self.model, self.config, self.meta = load_model(path)
         self.model.eval()
         self.optimize = optimize
+        self.dtype = compute_dtype(precision, self.config.multiscale) if optimize else torch.float32
         self.net = prepare_for_inference(self.model, self.dtype) if optimize else self.model
         self.max_memory_mb = float(max_memory_mb)
         self.margin = receptive_radius(self.config)
