@@ -11,6 +11,7 @@ import pytest
 
 from imaging.exr import read_exr, write_exr
 from pipeline.cli import denoise_main, main
+from pipeline.denoise import Denoiser
 from tests.test_denoise import write_tiny_checkpoint
 
 DEMO = Path(__file__).resolve().parents[1] / "scenes" / "examples" / "demo.xml"
@@ -36,7 +37,7 @@ def demo_run(tmp_path_factory: pytest.TempPathFactory, ckpt: Path) -> Path:
     return out
 
 
-def test_render_and_denoise_writes_everything(demo_run: Path) -> None:
+def test_render_and_denoise_writes_everything(demo_run: Path, ckpt: Path) -> None:
     """OIDN is compared by default (pyoidn is installed by make); every file readable by all
     (0644 under the umask 022 the fixture ran with)."""
     for name in OUTPUTS:
@@ -49,6 +50,7 @@ def test_render_and_denoise_writes_everything(demo_run: Path) -> None:
         for key in ("psnr", "ssim", "relmse", "smape", "flip", "hdr_flip"):
             assert np.isfinite(row[key]), key
     assert metrics["model"]["name"] == "tiny.ckpt" and len(metrics["model"]["sha256"]) == 64
+    assert metrics["model"]["precision"] == Denoiser(ckpt).precision  # auto: what this CPU gets
     assert all(v >= 0 for v in metrics["timings"].values())
     assert read_exr(demo_run / "denoised.exr").rgb.shape == (24, 32, 3)
     html = (demo_run / "report.html").read_text()
