@@ -17,6 +17,9 @@ scenes. The designs:
     python -m benchmarks.science commands [--data DIR --runs DIR --cpu-minutes 20 --max-scenes 60]
     python -m benchmarks.science report [--runs DIR]
 
+A run continued past the common budget (``train --out runs/science/NAME --resume --cpu-minutes 60
+--threads 1 --no-progress``) gets a second table at the longer budget.
+
 ``commands`` prints the exact ``train`` command of every run (run them in the background, two at
 a time with ``--threads 1`` on a 2-core machine). ``report`` reads the runs' logs and writes
 ``benchmarks/results/science.json``, ``science.md`` (validation PSNR per spp at the end of the
@@ -155,6 +158,21 @@ def table(results: dict[str, Any]) -> list[str]:
         if all(ref["oidn"].get(s) is not None for s in SPP_COLUMNS):
             lines.append(f"| OIDN colour-only | | | | | | | | " + " | ".join(f"{ref['oidn'][s]:.2f}"
                                                                          for s in SPP_COLUMNS) + " |")
+    longer = {n: r for n, r in runs.items() if r["budget_min"] > budget}
+    if longer:
+        longest = max(r["budget_min"] for r in longer.values())
+        marks = sorted({budget, (budget + longest) / 2, longest})
+        lines += ["", f"Runs continued to {longest:.0f} CPU minutes (the same run resumed with a larger "
+                  "`--cpu-minutes`: nothing in its schedule depends on the budget):", "",
+                  "| run | steps | " + " | ".join(f"{m:.0f} min" for m in marks) + " | "
+                  + " | ".join(f"{s} spp" for s in SPP_COLUMNS) + " |",
+                  "|---|---:|" + "---:|" * (len(marks) + len(SPP_COLUMNS))]
+        for name, r in longer.items():
+            cells = [_at(r["curve"], m) for m in marks]
+            end = cells[-1]
+            spp = [f"{end['per_spp'].get(s, float('nan')):.2f}" if end else "-" for s in SPP_COLUMNS]
+            lines.append(f"| {name} | {end['step'] if end else '-'} | "
+                         + " | ".join(f"{c['psnr']:.2f}" if c else "-" for c in cells) + " | " + " | ".join(spp) + " |")
     hidden = {n: r["hidden_noise"] for n, r in runs.items() if "hidden_noise" in r}
     if hidden:
         lines += ["", "Noise input hidden (a single EXR without halves), final checkpoints:", "",
