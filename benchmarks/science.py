@@ -41,15 +41,16 @@ from imaging.atomic_io import write_json_atomic
 
 RESULTS = Path(__file__).resolve().parent / "results"
 UNET = ["--preset", "u-balanced", "--patch", "128", "--batch", "8", "--lr", "1e-3", "--lr-warmup", "100"]
+NOISE = ["--noise-input", "--noise-radius", "2"]  # the u- presets were made RGB-only after this table
 FLAT = ["--patch", "32", "--batch", "64", "--lr", "1e-3"]
 RUNS: dict[str, list[str]] = {
     "flat_paper": ["--preset", "paper", *FLAT, "--val-every", "40"],
     "flat_fast": ["--preset", "fast", *FLAT, "--val-every", "150"],
-    "unet_noise": [*UNET, "--val-every", "100"],
-    "unet_noise_px": [*UNET, "--noise-radius", "0", "--val-every", "100"],
+    "unet_noise": [*UNET, *NOISE, "--val-every", "100"],
+    "unet_noise_px": [*UNET, "--noise-input", "--noise-radius", "0", "--val-every", "100"],
     "unet_rgb": [*UNET, "--no-noise-input", "--val-every", "100"],
-    "plain_noise": [*UNET, "--arch", "plain_unet", "--val-every", "100"],
-    "unet_noise_l1": [*UNET, "--gradient-weight", "0", "--val-every", "100"],
+    "plain_noise": [*UNET, *NOISE, "--arch", "plain_unet", "--val-every", "100"],
+    "unet_noise_l1": [*UNET, *NOISE, "--gradient-weight", "0", "--val-every", "100"],
 }
 SPP_COLUMNS = ("4", "16", "128")
 

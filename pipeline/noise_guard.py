@@ -36,7 +36,7 @@ DEFAULT_PIVOT_SPP = 256  # below this many spp the strength grows as pivot/spp (
 # Peak scratch bytes per pixel (numpy allocations, traced) of blend_weight with clean_render's copy
 # of its window, and of blend with its copy, both float32 HxWx3 in: a bound with headroom of what
 # tests/test_noise_guard.py measures with tracemalloc.
-GUARD_BYTES_PER_PIXEL = 112
+GUARD_BYTES_PER_PIXEL = 48
 BLEND_BYTES_PER_PIXEL = 48
 
 
@@ -53,32 +53,42 @@ def strength_for(spp: int, pivot_spp: float = DEFAULT_PIVOT_SPP) -> float:
 
 def box_mean(img: np.ndarray, radius: int) -> np.ndarray:
     """Mean over a (2r+1)^2 window per channel of an HxWxC image, the window cut at the borders;
-    HxWxC float32. Each sum adds its window's values in one fixed order (rows, then columns), in
-    float64, so a tile computed with ``radius`` pixels of context beside its core equals the
-    whole image's result there bit for bit (a running sum would not, and would lose a dim
-    pixel's sum beside a firefly to cancellation)."""
+    HxWxC float32 (:func:`box_mean_2d` per channel)."""
     if radius < 0:
         raise ValueError(f"radius must be >= 0, got {radius}")
-    height, width, channels = img.shape
-    count = np.outer(_window_counts(height, radius), _window_counts(width, radius))
     out = np.empty(img.shape, np.float32)
-    for c in range(channels):
-        plane = np.asarray(img[:, :, c], np.float64)
-        out[:, :, c] = _box_sum_1d(_box_sum_1d(plane, radius, 0), radius, 1) / count
+    for c in range(img.shape[2]):
+        out[:, :, c] = box_mean_2d(img[:, :, c], radius)
+    return out
+
+
+def box_mean_2d(plane: np.ndarray, radius: int) -> np.ndarray:
+    """Mean over a (2r+1)^2 window of an HxW plane, the window cut at the borders; float32.
+    Each sum adds its window's own values in one fixed order (rows, then columns), so a tile
+    computed with ``radius`` pixels of context beside its core equals the whole image's result
+    there bit for bit (a running sum would not, and would lose a dim pixel's sum beside a
+    firefly to cancellation; direct sums of 2r+1 values keep float32's relative precision)."""
+    if radius < 0:
+        raise ValueError(f"radius must be >= 0, got {radius}")
+    height, width = plane.shape
+    plane = np.asarray(plane, np.float32)
+    out = _box_sum_1d(_box_sum_1d(plane, radius, 0), radius, 1)
+    out /= _window_counts(height, radius)[:, None]
+    out /= _window_counts(width, radius)[None, :]
     return out
 
 
 def _window_counts(n: int, radius: int) -> np.ndarray:
-    """Pixels inside the window ``[i-r, i+r]`` cut to ``[0, n)``, for each i (float64)."""
+    """Pixels inside the window ``[i-r, i+r]`` cut to ``[0, n)``, for each i (float32)."""
     idx = np.arange(n)
-    return (np.minimum(idx + radius, n - 1) - np.maximum(idx - radius, 0) + 1).astype(np.float64)
+    return (np.minimum(idx + radius, n - 1) - np.maximum(idx - radius, 0) + 1).astype(np.float32)
 
 
 def _box_sum_1d(a: np.ndarray, radius: int, axis: int) -> np.ndarray:
-    """Sum over ``[i-r, i+r]`` along ``axis`` of a 2-D float64 array (indices outside it contribute
+    """Sum over ``[i-r, i+r]`` along ``axis`` of a 2-D float32 array (indices outside it contribute
     nothing), added from the window's first index to its last."""
     n = a.shape[axis]
-    out = np.zeros(a.shape, np.float64)
+    out = np.zeros(a.shape, np.float32)
     for k in range(-radius, radius + 1):
         lo, hi = max(0, -k), min(n, n - k)  # the i whose neighbour i+k lies inside
         if lo < hi:
@@ -99,24 +109,26 @@ def blend_weight(noisy: np.ndarray, denoised: np.ndarray, variance: np.ndarray,
     if not noisy.shape == denoised.shape == variance.shape:
         raise ValueError(f"shapes differ: noisy {noisy.shape}, denoised {denoised.shape}, "
                          f"variance {variance.shape}")
-    var = np.array(variance, np.float64)  # a copy: changed in place below
-    unbounded = ~np.isfinite(var).all(axis=2, keepdims=True)
-    np.maximum(var, 0, out=var)
-    var[np.broadcast_to(unbounded, var.shape)] = 0.0
-    total = var.sum(axis=2, keepdims=True)
-    del var
-    v = box_mean(total, radius)
-    change = np.array(denoised, np.float64)
-    np.subtract(change, noisy, out=change)
-    np.multiply(change, change, out=change)
-    total = change.sum(axis=2, keepdims=True)
-    del change
-    d = box_mean(total, radius)
-    del total
-    with np.errstate(divide="ignore", invalid="ignore"):
-        w = np.where(d > strength * v, strength * v / d, 1.0)
-    w[box_mean(unbounded.astype(np.float32), radius) > 0] = 1.0
-    return w.astype(np.float32)
+    var = np.asarray(variance, np.float32)
+    unbounded = np.zeros(var.shape[:2], bool)
+    total = np.zeros(var.shape[:2], np.float32)  # channel by channel: numpy reduces a short last axis slowly
+    d_total = np.zeros(var.shape[:2], np.float32)
+    for c in range(var.shape[2]):
+        plane = var[:, :, c]
+        unbounded |= ~np.isfinite(plane)
+        with np.errstate(invalid="ignore", over="ignore"):
+            total += np.maximum(plane, 0)  # inf or NaN where unbounded: zeroed below
+        change = np.subtract(denoised[:, :, c], noisy[:, :, c], dtype=np.float32)
+        d_total += np.multiply(change, change, out=change)
+    total[unbounded] = 0.0
+    v = box_mean_2d(total, radius)
+    d = box_mean_2d(d_total, radius)
+    del total, d_total, change
+    v *= np.float32(strength)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        w = np.where(d > v, v / d, np.float32(1.0)).astype(np.float32, copy=False)
+    w[box_mean_2d(unbounded.astype(np.float32), radius) > 0] = 1.0
+    return w[..., None]
 
 
 def blend(noisy: np.ndarray, denoised: np.ndarray, w: np.ndarray) -> np.ndarray:

@@ -109,13 +109,13 @@ def test_guard_scratch_per_pixel_stays_under_its_stated_bound(shape: tuple[int, 
 
 
 def test_guard_in_place_stays_within_its_budget() -> None:
-    """A 600x500 image within 2 MB (the same guard on the whole image: ~20 MB)."""
+    """A 600x500 image within 2 MB (the same guard on the whole image: ~12 MB)."""
     noisy, denoised, variance = _guard_case(600, 500)
     weights = np.empty((600, 500, 1), np.float32)
     peak = _traced_peak(lambda: guard_in_place(noisy, denoised, variance, weights, 2e6))
     assert peak <= 2e6 * 1.1
     whole = _traced_peak(lambda: guard(clean_render(noisy), denoised, variance))
-    assert whole > 10 * peak
+    assert whole > 5 * peak
 
 
 def test_zero_variance_keeps_the_render_and_infinite_variance_the_denoiser() -> None:
