@@ -112,7 +112,7 @@ def memory_child(model: str, width: int, height: int, max_memory_mb: float) -> d
     seconds = time.perf_counter() - start
     peak = _rss_mb()
     assert np.isfinite(result.image).all()
-    return {"width": width, "height": height, "max_memory_mb": max_memory_mb, "core": den.core_size(),
+    return {"width": width, "height": height, "max_memory_mb": max_memory_mb, "core": list(den.cores(height, width)),
             "tiles": result.tiles, "image_mb": image.nbytes / 2**20, "base_rss_mb": base,
             "peak_rss_mb": peak, "over_base_mb": peak - base, "seconds": seconds,
             "megapixels_per_s": width * height / 1e6 / seconds}
