@@ -148,8 +148,11 @@ def guard(noisy: np.ndarray, denoised: np.ndarray, variance: np.ndarray,
 
 def clean_render(noisy: np.ndarray) -> np.ndarray:
     """The render the guard blends with: float32 HxWx3, NaN and infinities -> 0, negatives -> 0."""
-    with np.errstate(invalid="ignore"):
-        return np.clip(np.nan_to_num(np.asarray(noisy, np.float32), nan=0.0, posinf=0.0, neginf=0.0), 0.0, None)
+    out = np.array(noisy, dtype=np.float32)
+    bad = ~np.isfinite(out)
+    np.maximum(out, 0.0, out=out)
+    np.putmask(out, bad, 0.0)
+    return out
 
 
 def guard_in_place(noisy: np.ndarray, denoised: np.ndarray, variance: np.ndarray, weights: np.ndarray,
