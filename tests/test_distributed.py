@@ -255,7 +255,10 @@ def test_hinted_command_resumes_a_ddp_run_started_with_preset_and_config(dataset
 def test_hinted_command_resumes_an_interrupted_run(dataset: Path, tmp_path: Path) -> None:
     run = tmp_path / "run"
     cfg = _config(tmp_path, ckpt_every=2, log_every=2)
-    proc = _start("--data", str(dataset), "--out", str(run), "--config", cfg, "--preset", "fast", "--steps", "200")
+    # SIGINT at its default in the child: a runner started in the background (nohup, `cmd &`)
+    # ignores SIGINT, its children inherit that, and Python then never raises KeyboardInterrupt
+    proc = _start("--data", str(dataset), "--out", str(run), "--config", cfg, "--preset", "fast", "--steps", "200",
+                  preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         deadline = time.time() + TIMEOUT_S
         while time.time() < deadline and not (run / "last.ckpt").exists():
