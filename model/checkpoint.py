@@ -13,8 +13,11 @@ non-finite weights are never written.
 """
 from __future__ import annotations
 
+import functools
+import hashlib
 import json
 import struct
+import subprocess
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -46,6 +49,25 @@ class Checkpoint:
         return {k[len(prefix):]: v for k, v in self.tensors.items() if k.startswith(prefix)}
 
 
+@functools.lru_cache(maxsize=1)
+def code_version() -> dict[str, Any]:
+    """What code wrote a checkpoint: the sha256 over the ``model`` package's sources (name and
+    bytes of every ``model/*.py``, sorted; equal for equal code, also in a copy without git), the
+    git commit when the package lies in a git checkout, and torch's version."""
+    package = Path(__file__).resolve().parent
+    digest = hashlib.sha256()
+    for source in sorted(package.glob("*.py")):
+        digest.update(source.name.encode() + b"\0" + source.read_bytes() + b"\0")
+    commit = None
+    try:
+        done = subprocess.run(["git", "-C", str(package), "rev-parse", "HEAD"], capture_output=True, text=True,
+                              timeout=10)
+        commit = done.stdout.strip() or None if done.returncode == 0 else None
+    except (OSError, subprocess.SubprocessError):
+        pass
+    return {"model_sources_sha256": digest.hexdigest(), "git_commit": commit, "torch": torch.__version__}
+
+
 def save_checkpoint(path: str | Path, model: torch.nn.Module, *, step: int,
                     optimizer: torch.optim.Optimizer | None = None,
                     train_config: dict[str, Any] | None = None, data_config: dict[str, Any] | None = None,
@@ -63,7 +85,7 @@ def save_checkpoint(path: str | Path, model: torch.nn.Module, *, step: int,
     header: dict[str, Any] = {
         "format": FORMAT, "format_version": FORMAT_VERSION, "step": int(step),
         "model_config": model.config.to_dict(), "train_config": train_config, "data_config": data_config,
-        "optimizer": None, "extra": extra or {},
+        "optimizer": None, "extra": extra or {}, "code": dict(code_version()),
     }
     if optimizer is not None:
         header["optimizer"] = _optimizer_header(optimizer)

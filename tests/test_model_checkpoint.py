@@ -10,7 +10,8 @@ import torch
 
 from imaging.errors import CheckpointError
 from model.architectures import build_model
-from model.checkpoint import (load_model, read_checkpoint, restore_optimizer, restore_rng, save_checkpoint)
+from model.checkpoint import (code_version, load_model, read_checkpoint, restore_optimizer, restore_rng,
+                              save_checkpoint)
 from model.config import ModelConfig
 from model.loss import denoising_loss
 
@@ -149,3 +150,13 @@ def test_restored_adam_moments_follow_channels_last_params(tmp_path: Path) -> No
     restore_optimizer(read_checkpoint(tmp_path / "m.ckpt"), fused)
     for param in fresh.parameters():
         assert fused.state[param]["exp_avg"].stride() == param.stride()
+
+
+def test_a_checkpoint_records_the_code_that_wrote_it(tmp_path: Path) -> None:
+    path = tmp_path / "m.ckpt"
+    save_checkpoint(path, build_model(ModelConfig(layers=2, growth=4, init_features=8)), step=3)
+    code = read_checkpoint(path).header["code"]
+    assert code == code_version() and len(code["model_sources_sha256"]) == 64
+    assert code["torch"] == torch.__version__
+    assert code["git_commit"] is None or len(code["git_commit"]) == 40
+
