@@ -7,7 +7,7 @@ output converted back to float32 before the residual is added, so the noisy imag
 rounded. On CPUs with native bfloat16 arithmetic (AMX or AVX512-BF16) this halves the network's
 time; elsewhere oneDNN emulates it and it is slower than float32. ``auto`` picks bfloat16 only
 where the CPU has it natively and for the multi-scale networks: on the eval scenes (``python -m
-benchmarks.evaluate --precisions float32,bfloat16``) the u-balanced checkpoint lost nothing
+benchmarks.evaluate --precisions float32,bfloat16``) the noise-input u-balanced checkpoint lost nothing
 (31.59 / 34.90 / 39.14 against 31.59 / 34.91 / 39.15 dB at 4 / 16 / 128 spp) but the flat
 ``fast`` lost 0.5 dB at 128 spp (40.86 against 41.36; its full-resolution features carry small
 corrections that bfloat16 rounds away). Its speed: ``benchmarks/inference.py`` (docs/speed.md).
