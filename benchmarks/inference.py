@@ -35,6 +35,7 @@ import numpy as np
 import torch
 
 from imaging.atomic_io import write_json_atomic
+from imaging.usage import size_list
 from model.architectures import build_model
 from model.checkpoint import save_checkpoint
 from model.config import PRESETS, preset
@@ -155,7 +156,7 @@ def table(results: dict[str, Any]) -> list[str]:
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--quick", action="store_true", help="256x256 only, one run")
-    p.add_argument("--sizes", default=",".join(f"{w}x{h}" for w, h in SIZES))
+    p.add_argument("--sizes", type=size_list, default=list(SIZES))
     p.add_argument("--models", default="u-fast,u-balanced,u-high,fast",
                    help="preset names (random weights) or checkpoint files")
     p.add_argument("--precisions", default="float32,bfloat16",
@@ -163,8 +164,7 @@ def main() -> None:
     p.add_argument("--repeat", type=int, default=5)
     p.add_argument("--threads", type=int, default=0, help="torch threads (0: the Denoiser's choice)")
     args = p.parse_args()
-    sizes = ([(256, 256)] if args.quick
-             else [tuple(int(v) for v in s.split("x")) for s in args.sizes.split(",")])
+    sizes = [(256, 256)] if args.quick else args.sizes
     repeat = 1 if args.quick else args.repeat
     precisions = args.precisions.split(",")
     load_before = os.getloadavg()

@@ -9,9 +9,9 @@ largest input value (of any channel) within ``BOUND_RADIUS`` pixels] (:func:`nei
 denoiser averages, so an output brighter than every input around it is a network failure, not
 detail: the multi-scale nets were measured turning a firefly's neighbourhood into a patch of 65504,
 benchmarks/results/evaluate.json; never above 1, radiance HDR_MAX, so nothing overflows to Inf)
--> inverse transfer -> undo the exposure. All of it tile by tile: no whole-image temporaries besides the output. The caller sizes
-the tiles (:func:`tile_bytes_per_pixel` per window pixel); the passes over the whole image
-(exposure, the skip test below) work in blocks within ``max_bytes``.
+-> inverse transfer -> undo the exposure. All of it tile by tile: no whole-image temporaries
+besides the output. The caller sizes the tiles (:func:`tile_bytes_per_pixel` per window pixel);
+the passes over the whole image (exposure, the skip test below) work in blocks within ``max_bytes``.
 
 With a variance and ``skip_below``, the parts of the image whose noise is already below that
 level (transfer-space standard deviation, per 64-px cell) are not run through the network: they

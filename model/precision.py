@@ -42,6 +42,13 @@ def native_bfloat16(cpuinfo: str | Path = "/proc/cpuinfo") -> bool:
     return bool(cpu_flags(cpuinfo) & NATIVE_BF16_FLAGS)
 
 
+def check_precision(precision: str) -> str:
+    """``precision`` if it is one of :data:`PRECISIONS`; raises ValueError otherwise."""
+    if precision not in PRECISIONS:
+        raise ValueError(f"precision must be one of {', '.join(PRECISIONS)}, got {precision!r}")
+    return precision
+
+
 def compute_dtype(precision: str, multiscale: bool = True, cpuinfo: str | Path = "/proc/cpuinfo") -> torch.dtype:
     """The torch dtype of ``precision`` (one of :data:`PRECISIONS`) for a network that is
     ``multiscale`` or flat (``auto`` keeps flat networks in float32); raises ValueError for an
@@ -49,10 +56,6 @@ def compute_dtype(precision: str, multiscale: bool = True, cpuinfo: str | Path =
     need torch.)"""
     import torch
 
-    if precision == "float32":
-        return torch.float32
-    if precision == "bfloat16":
-        return torch.bfloat16
-    if precision == "auto":
+    if check_precision(precision) == "auto":
         return torch.bfloat16 if multiscale and native_bfloat16(cpuinfo) else torch.float32
-    raise ValueError(f"precision must be one of {', '.join(PRECISIONS)}, got {precision!r}")
+    return torch.bfloat16 if precision == "bfloat16" else torch.float32

@@ -110,11 +110,13 @@ class Denoiser:
 
         from model.checkpoint import load_model
         from model.architectures import prepare_for_inference, receptive_radius
-        from model.precision import PRECISIONS, compute_dtype
+        from model.precision import check_precision, compute_dtype
 
         path = resolve_model(checkpoint)
-        if precision not in PRECISIONS:
-            raise DenoiserError(f"precision must be one of {', '.join(PRECISIONS)}, got {precision!r}")
+        try:
+            check_precision(precision)  # before the checkpoint is read
+        except ValueError as exc:
+            raise DenoiserError(str(exc)) from None
         if not 0 < max_memory_mb < float("inf"):  # also refuses NaN
             raise DenoiserError(f"max memory must be positive and finite, got {max_memory_mb} MB")
         if threads:

@@ -51,17 +51,6 @@ def strength_for(spp: int, pivot_spp: float = DEFAULT_PIVOT_SPP) -> float:
     return max(1.0, pivot_spp / spp)
 
 
-def box_mean(img: np.ndarray, radius: int) -> np.ndarray:
-    """Mean over a (2r+1)^2 window per channel of an HxWxC image, the window cut at the borders;
-    HxWxC float32 (:func:`box_mean_2d` per channel)."""
-    if radius < 0:
-        raise ValueError(f"radius must be >= 0, got {radius}")
-    out = np.empty(img.shape, np.float32)
-    for c in range(img.shape[2]):
-        out[:, :, c] = box_mean_2d(img[:, :, c], radius)
-    return out
-
-
 def box_mean_2d(plane: np.ndarray, radius: int) -> np.ndarray:
     """Mean over a (2r+1)^2 window of an HxW plane, the window cut at the borders; float32.
     Each sum adds its window's own values in one fixed order (rows, then columns), so a tile
@@ -162,7 +151,7 @@ def guard_in_place(noisy: np.ndarray, denoised: np.ndarray, variance: np.ndarray
     ``noisy``: HxWx3 render (any float dtype; :func:`clean_render` is applied), ``variance`` its
     HxWx3 variance (read as float32); ``denoised``: HxWx3 float32, replaced by the blend; ``weights``: HxWx1
     float32, filled with :func:`blend_weight`. The weights are computed on tiles with ``radius``
-    pixels of context (:func:`box_mean` makes them exact), then blended in row blocks: the
+    pixels of context (:func:`box_mean_2d` makes them exact), then blended in row blocks: the
     weights need the unblended output around each tile, so it is changed only once they are
     all known. A tile or a block is at least 16 px or one row wide, whatever ``max_bytes`` says.
     """

@@ -8,8 +8,13 @@ import numpy as np
 import pytest
 
 from imaging.render import render
-from pipeline.noise_guard import (BLEND_BYTES_PER_PIXEL, GUARD_BYTES_PER_PIXEL, blend, blend_weight, box_mean,
+from pipeline.noise_guard import (BLEND_BYTES_PER_PIXEL, GUARD_BYTES_PER_PIXEL, blend, blend_weight, box_mean_2d,
                                   clean_render, guard, guard_in_place)
+
+
+def box_mean(img: np.ndarray, radius: int) -> np.ndarray:
+    """:func:`box_mean_2d` (what the guard uses) of each channel of an HxWxC image."""
+    return np.stack([box_mean_2d(img[:, :, c], radius) for c in range(img.shape[2])], axis=2)
 
 
 def _brute_box_mean(img: np.ndarray, r: int) -> np.ndarray:
@@ -174,7 +179,7 @@ def test_bad_arguments_are_refused() -> None:
     with pytest.raises(ValueError, match="shapes differ"):
         guard(img, img[:1], img)
     with pytest.raises(ValueError, match="radius"):
-        box_mean(img, -1)
+        box_mean_2d(img[:, :, 0], -1)
 
 
 def test_render_in_halves_estimates_its_own_noise(plane_scene: dict) -> None:
