@@ -17,6 +17,11 @@ What changes against the training module (eval mode), and why it is exact up to 
   preallocated buffer instead of ``torch.cat``-ing an ever-growing tensor (O(L) instead of O(L^2)
   memory traffic).
 * **channels_last** (NHWC) activations and weights, the layout oneDNN convolves without reordering.
+* **One scratch for the clamps.** Every clamp (and the tail's affine map) writes into a view of one
+  flat buffer allocated once per forward pass (:func:`scratch_view`) instead of a fresh tensor per
+  layer: a fresh tensor of more than a megabyte is a fresh mapping (:mod:`imaging.allocator`), whose
+  every page faults on first touch. Measured on 2 cores (u-fast, bfloat16, 1080p): the whole
+  denoising call 1.06 -> 0.73 s/MP, and a lower memory peak.
 * **Optionally bfloat16** (``dtype``, :mod:`model.precision`): weights and activations; the input
   is built and the residual added in float32.
 
@@ -40,6 +45,11 @@ def bn_affine(bn: nn.BatchNorm2d) -> tuple[torch.Tensor, torch.Tensor]:
     bias = bn.bias.double() if bn.affine else torch.zeros_like(var)
     shift = bias - scale * bn.running_mean.double()
     return scale.float(), shift.float()
+
+
+def scratch_view(scratch: torch.Tensor, n: int, c: int, h: int, w: int) -> torch.Tensor:
+    """The first ``n*c*h*w`` elements of the flat ``scratch`` as an NxCxHxW channels_last tensor."""
+    return scratch[:n * c * h * w].view(n, h, w, c).permute(0, 3, 1, 2)
 
 
 def fold_conv_bn(conv: nn.Conv2d, bn: nn.BatchNorm2d) -> tuple[torch.Tensor, torch.Tensor]:
@@ -73,8 +83,10 @@ class _AffineReLU(nn.Module):
         self.register_buffer("scale", scale.view(1, -1, 1, 1))
         self.register_buffer("shift", shift.view(1, -1, 1, 1))
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return torch.addcmul(self.shift, x, self.scale).relu_()
+    def forward(self, x: torch.Tensor, scratch: torch.Tensor | None = None) -> torch.Tensor:
+        if scratch is None:
+            return torch.addcmul(self.shift, x, self.scale).relu_()
+        return torch.addcmul(self.shift, x, self.scale, out=scratch_view(scratch, *x.shape)).relu_()
 
 
 DEAD_SCALE = 1e-12  # |s| below this: the channel counts as constant (s*x is lost in rounding)
@@ -122,14 +134,21 @@ class _ClampConv1x1(nn.Module):
             w, lo, hi = w[:, order], lo[:, order], hi[:, order]
         self.register_buffer("lo", lo.contiguous())
         self.register_buffer("hi", hi.contiguous())
+        # trained BN scales are positive in practice (every clamp of the shipped weights): then the
+        # clamp has no upper bound and is one maximum, measured 1.6x faster than clamp in bfloat16
+        self.upper = bool(torch.isfinite(hi).any())
         self.conv = _Conv(w.float()[:, :, None, None], bias.float(), relu=bn2 is not None)
 
-    def clamp(self, x: torch.Tensor) -> torch.Tensor:
-        """The first pass alone: the input clamped per channel."""
-        return torch.clamp(x, self.lo, self.hi)
+    def clamp(self, x: torch.Tensor, scratch: torch.Tensor | None = None) -> torch.Tensor:
+        """The first pass alone: the input clamped per channel (into a view of the flat
+        ``scratch`` when given, :func:`scratch_view`)."""
+        out = None if scratch is None else scratch_view(scratch, *x.shape)
+        if self.upper:
+            return torch.clamp(x, self.lo, self.hi, out=out)
+        return torch.maximum(x, self.lo, out=out)
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.conv(self.clamp(x))
+    def forward(self, x: torch.Tensor, scratch: torch.Tensor | None = None) -> torch.Tensor:
+        return self.conv(self.clamp(x, scratch))
 
 
 class InferenceNet(nn.Module):
@@ -152,24 +171,27 @@ class InferenceNet(nn.Module):
         self.to(dtype)
         self.eval()
 
-    def _dense(self, x: torch.Tensor) -> torch.Tensor:
+    def _dense(self, x: torch.Tensor, scratch: torch.Tensor) -> torch.Tensor:
         c0, k = self.config.init_features, self.config.growth
         n, _, h, w = x.shape
         buf = torch.empty(n, self.width, h, w, dtype=x.dtype, memory_format=torch.channels_last)
         buf[:, :c0] = x
         for i, (conv1, conv3) in enumerate(zip(self.conv1, self.conv3)):
             cin = c0 + i * k
-            buf[:, cin:cin + k] = conv3(conv1(buf[:, :cin]))
+            buf[:, cin:cin + k] = conv3(conv1(buf[:, :cin], scratch))
         return buf
 
-    def _plain(self, x: torch.Tensor) -> torch.Tensor:
+    def _plain(self, x: torch.Tensor, scratch: torch.Tensor) -> torch.Tensor:
         for conv1, conv3 in zip(self.conv1, self.conv3):
-            x = conv3(conv1(x))
+            x = conv3(conv1(x, scratch))
         return x
 
     def forward(self, image: torch.Tensor) -> torch.Tensor:
         x = network_input(image).contiguous(memory_format=torch.channels_last).to(self.dtype)
         x = self.head(x)
-        x = self._dense(x) if self.config.arch == "densenet" else self._plain(x)
-        out = self.tail(self.tail_pre(x)).float()
+        n, _, h, w = x.shape
+        widest = max([c.lo.shape[1] for c in self.conv1] + [self.tail_pre.scale.shape[1]])
+        scratch = torch.empty(n * widest * h * w, dtype=self.dtype)  # the clamps' (scratch_view)
+        x = self._dense(x, scratch) if self.config.arch == "densenet" else self._plain(x, scratch)
+        out = self.tail(self.tail_pre(x, scratch)).float()
         return out + image[:, :3] if self.config.output == "residual" else out

@@ -16,6 +16,8 @@ encoder/decoder shape allows:
   ``[up | skip | ...]``, so their weights are permuted to match.
 * **Nearest upsampling written in place** through a strided view of the buffer (one pass).
 * **channels_last** activations and weights.
+* **One scratch for the clamps** (:func:`model.inference_net.scratch_view`): every clamp of a
+  forward pass, and the tail's affine map, write into one flat buffer sized for the largest.
 * **Optionally bfloat16** (``dtype``, :mod:`model.precision`): weights and activations; the input
   is built and the residual added in float32.
 
@@ -49,17 +51,18 @@ class _FoldedBlock(nn.Module):
             self.conv3.append(_Conv(conv3.weight.detach().clone(), None, relu=False))
         self.out_channels = block.out_channels
 
-    def run_dense(self, buf: torch.Tensor, start: int) -> None:
-        """Layer i reads ``buf[:, :start + i*k]`` and writes its k channels right after."""
+    def run_dense(self, buf: torch.Tensor, start: int, scratch: torch.Tensor) -> None:
+        """Layer i reads ``buf[:, :start + i*k]`` and writes its k channels right after (its
+        clamp into ``scratch``)."""
         c = start
         for conv1, conv3 in zip(self.conv1, self.conv3):
-            y = conv3(conv1(buf[:, :c]))
+            y = conv3(conv1(buf[:, :c], scratch))
             buf[:, c:c + y.shape[1]] = y
             c += y.shape[1]
 
-    def run_plain(self, x: torch.Tensor) -> torch.Tensor:
+    def run_plain(self, x: torch.Tensor, scratch: torch.Tensor) -> torch.Tensor:
         for conv1, conv3 in zip(self.conv1, self.conv3):
-            x = conv3(conv1(x))
+            x = conv3(conv1(x, scratch))
         return x
 
 
@@ -119,52 +122,63 @@ class InferenceUNet(nn.Module):
         self.to(dtype)
         self.eval()
 
-    def _encode(self, x: torch.Tensor, level: int) -> torch.Tensor:
+    def _encode(self, x: torch.Tensor, level: int, scratch: torch.Tensor) -> torch.Tensor:
         """Run encoder block ``level`` on its input ``x``; returns the level's buffer (dense) or
         the block's output (plain)."""
         if not self.dense:
-            return self.enc[level].run_plain(x)
+            return self.enc[level].run_plain(x, scratch)
         h, w = x.shape[-2:]
         buf = _buffer(x, self.level_channels[level], h, w)
         buf[:, :x.shape[1]] = x
-        self.enc[level].run_dense(buf, x.shape[1])
+        self.enc[level].run_dense(buf, x.shape[1], scratch)
         return buf
 
-    def _bottom(self, x: torch.Tensor) -> torch.Tensor:
+    def _bottom(self, x: torch.Tensor, scratch: torch.Tensor) -> torch.Tensor:
         if not self.dense:
-            return self.bottom.run_plain(x)
+            return self.bottom.run_plain(x, scratch)
         buf = _buffer(x, self.bottom_channels, *x.shape[-2:])
         buf[:, :x.shape[1]] = x
-        self.bottom.run_dense(buf, x.shape[1])
+        self.bottom.run_dense(buf, x.shape[1], scratch)
         return buf
 
-    def _decode(self, below: torch.Tensor, skip: torch.Tensor, level: int) -> torch.Tensor:
+    def _decode(self, below: torch.Tensor, skip: torch.Tensor, level: int, scratch: torch.Tensor) -> torch.Tensor:
         """Transition up from ``below`` and decoder block ``level`` (``skip``: the level's
         buffer for dense nets, whose encoder part is already filled)."""
-        up = self.up[level](below)
+        up = self.up[level](below, scratch)
         if not self.dense:
             big = F.interpolate(up, scale_factor=2.0, mode="nearest")
-            return self.dec[level].run_plain(torch.cat([big, skip], dim=1))
+            return self.dec[level].run_plain(torch.cat([big, skip], dim=1), scratch)
         e, w = self.enc_width[level], self.width[level]
         _upsample_into(skip[:, e:e + w], up)
-        self.dec[level].run_dense(skip, e + w)
+        self.dec[level].run_dense(skip, e + w, scratch)
         return skip
+
+    def scratch_elements(self, n: int, h: int, w: int) -> int:
+        """Elements of the clamps' scratch for a stem output of n x h x w pixels: the largest
+        clamp input (channels x pixels of its level; level i has (h >> i) x (w >> i) pixels)."""
+        def clamps(i: int) -> list[_ClampConv1x1]:  # the clamps that run at level i
+            here = [] if i == len(self.enc) else [*self.enc[i].conv1, *self.dec[i].conv1, self.down[i]]
+            return here + (list(self.bottom.conv1) if i == len(self.enc) else []) + \
+                ([self.up[i - 1]] if i > 0 else [])
+        need = [c.lo.shape[1] * (h >> i) * (w >> i) for i in range(len(self.enc) + 1) for c in clamps(i)]
+        return n * max(need + [self.tail_pre.scale.shape[1] * h * w])
 
     def forward(self, image: torch.Tensor) -> torch.Tensor:
         h, w = image.shape[-2:]
         x = pad_to_alignment(network_input(image), alignment(self.config))
         raw = F.pixel_unshuffle(x, 2).contiguous(memory_format=torch.channels_last).to(self.dtype)
         x = self.stem(raw)
+        scratch = torch.empty(self.scratch_elements(x.shape[0], *x.shape[-2:]), dtype=self.dtype)
         levels = []
         for i, down in enumerate(self.down):
-            buf = self._encode(x, i)
+            buf = self._encode(x, i, scratch)
             levels.append(buf)
             e = self.enc_width[i]
-            x = down.conv(F.avg_pool2d(down.clamp(buf[:, :e]), 2))
-        x = self._bottom(x)
+            x = down.conv(F.avg_pool2d(down.clamp(buf[:, :e], scratch), 2))
+        x = self._bottom(x, scratch)
         for i in reversed(range(len(levels))):
-            x = self._decode(x, levels[i], i)
-        y = self.tail(self.tail_pre(x))
+            x = self._decode(x, levels[i], i, scratch)
+        y = self.tail(self.tail_pre(x, scratch))
         y += self.skip(raw)
         out = F.pixel_shuffle(y.float(), 2)[..., :h, :w]
         return out + image[:, :3] if self.config.output == "residual" else out

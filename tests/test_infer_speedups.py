@@ -24,7 +24,7 @@ NET_ATOL = 2e-5
 CHAIN_RTOL = 2e-4
 
 
-def _trained_like(config: ModelConfig, seed: int = 0) -> torch.nn.Module:
+def _trained_like(config: ModelConfig, seed: int = 0, positive: bool = False) -> torch.nn.Module:
     """A random model with BN statistics and affine parameters of both signs, as after training."""
     torch.manual_seed(seed)
     model = build_model(config)
@@ -33,7 +33,7 @@ def _trained_like(config: ModelConfig, seed: int = 0) -> torch.nn.Module:
             if isinstance(m, torch.nn.BatchNorm2d):
                 m.running_mean.uniform_(-0.2, 0.2)
                 m.running_var.uniform_(0.3, 2.0)
-                m.weight.uniform_(-1.5, 1.5)
+                m.weight.uniform_(0.1 if positive else -1.5, 1.5)  # positive: as trained ones are
                 m.weight[0] = 0.0  # a dead channel: relu(0*x + t) is a constant
                 m.bias.uniform_(-0.2, 0.2)
         torch.nn.init.normal_(model.tail[-1].weight, std=0.05)  # not the identity at init
@@ -71,8 +71,10 @@ def test_fold_conv_bn_equals_conv_then_bn() -> None:
     ModelConfig(layers=3, growth=4, init_features=8, arch="plaincnn"),
     ModelConfig(layers=2, growth=4, init_features=8, aux_inputs=True),
 ], ids=["densenet", "direct", "plaincnn", "aux"])
-def test_inference_net_equals_eager_model(config: ModelConfig) -> None:
-    model = _trained_like(config)
+@pytest.mark.parametrize("positive", [False, True], ids=["any-bn-scale", "positive-bn-scales"])
+def test_inference_net_equals_eager_model(config: ModelConfig, positive: bool) -> None:
+    """Both ways of the clamp: BN scales of both signs (clamp) and all positive (one maximum)."""
+    model = _trained_like(config, positive=positive)
     before = {k: v.clone() for k, v in model.state_dict().items()}
     net = prepare_for_inference(model)
     torch.manual_seed(1)

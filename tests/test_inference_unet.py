@@ -24,8 +24,10 @@ NET_ATOL = 2e-5
     dataclasses.replace(TINY, arch="plain_unet", noise_input=True),
     dataclasses.replace(TINY, output="direct", aux_inputs=True, noise_input=True),
 ], ids=["dense", "dense-noise", "plain-noise", "direct-aux-noise"])
-def test_folded_unet_equals_the_training_module(config: ModelConfig) -> None:
-    model = trained_like(config)
+@pytest.mark.parametrize("positive", [False, True], ids=["any-bn-scale", "positive-bn-scales"])
+def test_folded_unet_equals_the_training_module(config: ModelConfig, positive: bool) -> None:
+    """Both ways of the clamp: BN scales of both signs (clamp) and all positive (one maximum)."""
+    model = trained_like(config, positive=positive)
     before = {k: v.clone() for k, v in model.state_dict().items()}
     net = prepare_for_inference(model)
     assert isinstance(net, InferenceUNet) and not net.training

@@ -16,7 +16,7 @@ from model.unet import MultiScaleDenoiser, conv_macs_per_pixel, pad_to_alignment
 TINY = ModelConfig(arch="dense_unet", layers=1, growth=4, init_features=8, levels=2, transfer="pu")
 
 
-def trained_like(config: ModelConfig, seed: int = 0) -> torch.nn.Module:
+def trained_like(config: ModelConfig, seed: int = 0, positive: bool = False) -> torch.nn.Module:
     """A random multi-scale model with BN statistics of both signs and a non-zero tail, in eval mode."""
     torch.manual_seed(seed)
     model = build_model(config)
@@ -25,7 +25,7 @@ def trained_like(config: ModelConfig, seed: int = 0) -> torch.nn.Module:
             if isinstance(m, torch.nn.BatchNorm2d):
                 m.running_mean.uniform_(-0.3, 0.3)
                 m.running_var.uniform_(0.3, 2.0)
-                m.weight.uniform_(-1.5, 1.5)
+                m.weight.uniform_(0.1 if positive else -1.5, 1.5)  # positive: as trained ones are
                 m.weight[0] = 0.0  # a dead channel
                 m.bias.uniform_(-0.3, 0.3)
         torch.nn.init.normal_(model.tail.weight, std=0.05)
