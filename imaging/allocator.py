@@ -14,15 +14,25 @@ denoise chain of ``u-fast``/``u-balanced`` runs ~10-25 % slower than with glibc'
 to 1080p. A 16 MiB threshold ran as fast as the default but let two threads' heaps keep gaps:
 a tile planned for 256 MB then peaked anywhere from 1.0 to 1.45x of it from run to run; the
 budget is a promise, so the threshold stays at 1 MiB.
+
+The faults are paid per page: :func:`use_huge_pages` asks torch's CPU allocator to back its
+blocks of 2 MiB or more with transparent huge pages (``THP_MEM_ALLOC_ENABLE``; numpy does the same
+on its own), 512 times fewer faults for the same bytes. Measured on 2 cores (u-fast in bfloat16,
+the whole denoising call, best of 3, two runs each): 1080p 0.45-0.60 s/MP against 0.65-0.74,
+3840x2160 under a 256 MB budget 1.23 against 1.51-1.52, 256^2 unchanged (0.60-0.76 against
+0.68-0.70); the same peak memory. It works where the kernel's transparent huge pages are
+``always`` or ``madvise`` (Debian's default) and changes nothing where they are ``never``.
 """
 from __future__ import annotations
 
 import ctypes
+import os
 import platform
 
 M_TRIM_THRESHOLD = -1  # mallopt's parameter numbers (malloc.h)
 M_MMAP_THRESHOLD = -3
 DEFAULT_THRESHOLD = 2**20
+THP_VARIABLE = "THP_MEM_ALLOC_ENABLE"  # read by torch's CPU allocator (c10) at its first large allocation
 
 
 def fix_mmap_threshold(threshold: int = DEFAULT_THRESHOLD) -> bool:
@@ -38,3 +48,11 @@ def fix_mmap_threshold(threshold: int = DEFAULT_THRESHOLD) -> bool:
             bool(libc.mallopt(ctypes.c_int(M_TRIM_THRESHOLD), ctypes.c_int(2 * int(threshold))))
     except (OSError, AttributeError):
         return False
+
+
+def use_huge_pages() -> bool:
+    """Ask torch's CPU allocator to back blocks of 2 MiB or more with transparent huge pages
+    (``THP_MEM_ALLOC_ENABLE=1``), unless the environment already says otherwise. Torch reads the
+    variable once, at its first such allocation in the process: called after that, it changes
+    nothing. True when the variable is (now) 1."""
+    return os.environ.setdefault(THP_VARIABLE, "1") == "1"

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -40,3 +41,33 @@ def test_fixed_threshold_returns_freed_blocks_at_once() -> None:
     assert fixed["fixed"] is True and fixed["released_mb"] >= 76
     default = _released("default")  # why: the heap keeps the gaps
     assert default["released_mb"] < 40
+
+
+_THP_CHILD = """
+import json, sys
+from imaging.allocator import use_huge_pages
+asked = use_huge_pages()
+import torch
+block = torch.ones(16 * 2**20 // 4)  # 16 MiB, touched
+huge = sum(int(line.split()[1]) for line in open("/proc/self/smaps") if line.startswith("AnonHugePages:"))
+print(json.dumps({"asked": asked, "huge_kb": huge}))
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="/proc and transparent huge pages")
+@pytest.mark.parametrize("preset", [None, "0"], ids=["unset", "user-said-0"])
+def test_use_huge_pages_backs_large_torch_blocks(preset: str | None) -> None:
+    thp = Path("/sys/kernel/mm/transparent_hugepage/enabled")
+    if not thp.exists() or "[never]" in thp.read_text():
+        pytest.skip("transparent huge pages are off on this kernel")
+    env = {k: v for k, v in os.environ.items() if k != "THP_MEM_ALLOC_ENABLE"}
+    if preset is not None:
+        env["THP_MEM_ALLOC_ENABLE"] = preset  # a user's own setting is kept
+    proc = subprocess.run([sys.executable, "-c", _THP_CHILD], capture_output=True, text=True, check=True,
+                          cwd=Path(__file__).resolve().parents[1], env=env)
+    result = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert result["asked"] is (preset is None)
+    if preset is None:
+        assert result["huge_kb"] >= 8 * 1024  # most of the 16 MiB block (its 2 MiB-aligned part)
+    elif "[madvise]" in thp.read_text():  # (with "always" every large block gets them anyway)
+        assert result["huge_kb"] < 8 * 1024
