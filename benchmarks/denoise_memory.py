@@ -11,7 +11,7 @@ exact, and **scratch** = the stage's peak - the RSS at its start - the images it
 * calibrate: one tile of the chain (:func:`model.infer.denoise_image` on an SxS image that is one
   window, the noise variance given to the models that take it) for each preset (random weights:
   memory does not depend on them) at several S, with the Denoiser's allocator setting
-  (:mod:`imaging.allocator`); the folded network (the default) and the training module; a few
+  (:mod:`imaging.allocator`: the mmap threshold and huge pages); the folded network (the default) and the training module; a few
   with glibc's default setting, to show what the setting is for. Beside each, the estimate the
   tile planner uses (:func:`model.infer.tile_bytes_per_pixel` x pixels + ``TILE_FIXED_BYTES``).
 * commands: per image size, the bundled demo scene at ``--spp`` in two halves through
@@ -69,8 +69,9 @@ def reset():
 _TILE_CHILD = _COMMON + r"""
 import numpy as np, torch
 if job["allocator"]:
-    from imaging.allocator import fix_mmap_threshold
+    from imaging.allocator import fix_mmap_threshold, use_huge_pages
     fix_mmap_threshold()
+    use_huge_pages()
 from model.architectures import build_model, prepare_for_inference
 from model.config import PRESETS
 from model.infer import TILE_FIXED_BYTES, denoise_image, tile_bytes_per_pixel

@@ -243,10 +243,12 @@ def denoise_image(model: nn.Module, color: np.ndarray, aux: Aux = None,
         return y if scale == 1.0 else np.divide(y, np.float32(scale), out=y)
 
     was_training = model.training
-    model.eval()
+    if was_training:  # (each switch walks every submodule: ~3 ms a call at 128^2 for a folded u-net)
+        model.eval()
     try:
         with torch.inference_mode():
             out = run_windows(net, height, width, core, receptive_radius(config), progress, align, out, region)
     finally:
-        model.train(was_training)
+        if was_training:
+            model.train()
     return out.astype(np.float32, copy=False)

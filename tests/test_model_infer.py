@@ -47,6 +47,16 @@ def test_denoise_image_range_and_shape() -> None:
     assert not model.training
 
 
+def test_denoise_image_runs_in_eval_mode_and_restores_training() -> None:
+    model = _model()
+    color = (np.random.default_rng(1).random((16, 16, 3)) * 5).astype(np.float32)
+    want = denoise_image(model, color, core=16)  # eval mode
+    model.train()
+    got = denoise_image(model, color, core=16)  # the BN statistics are used, not the batch's
+    assert model.training and all(m.training for m in model.modules())
+    np.testing.assert_array_equal(got, want)
+
+
 def _brute_max(image: np.ndarray, r: int) -> np.ndarray:
     h, w = image.shape[:2]
     return np.array([[image[max(0, y - r):y + r + 1, max(0, x - r):x + r + 1].max() for x in range(w)]
