@@ -99,32 +99,43 @@ def blend_weight(noisy: np.ndarray, denoised: np.ndarray, variance: np.ndarray,
         raise ValueError(f"shapes differ: noisy {noisy.shape}, denoised {denoised.shape}, "
                          f"variance {variance.shape}")
     var = np.asarray(variance, np.float32)
-    unbounded = np.zeros(var.shape[:2], bool)
-    total = np.zeros(var.shape[:2], np.float32)  # channel by channel: numpy reduces a short last axis slowly
-    d_total = np.zeros(var.shape[:2], np.float32)
-    for c in range(var.shape[2]):
-        plane = var[:, :, c]
-        unbounded |= ~np.isfinite(plane)
-        with np.errstate(invalid="ignore", over="ignore"):
-            total += np.maximum(plane, 0)  # inf or NaN where unbounded: zeroed below
-        change = np.subtract(denoised[:, :, c], noisy[:, :, c], dtype=np.float32)
-        d_total += np.multiply(change, change, out=change)
-    total[unbounded] = 0.0
+    finite = np.isfinite(var)
+    anywhere_unbounded = not finite.all()
+    with np.errstate(invalid="ignore", over="ignore"):
+        positive = np.maximum(var, np.float32(0.0))  # inf or NaN where unbounded: zeroed below
+    # channels summed as whole planes of the contiguous HxWx3 results (numpy reduces a short last
+    # axis slowly, and works on a strided channel plane slowly): (c0 + c1) + c2 as before
+    total = np.add(positive[:, :, 0], positive[:, :, 1])
+    total += positive[:, :, 2]
+    change = np.subtract(denoised, noisy, dtype=np.float32)
+    change *= change
+    d_total = np.add(change[:, :, 0], change[:, :, 1])
+    d_total += change[:, :, 2]
+    del positive, change
+    unbounded = ~finite.all(axis=2) if anywhere_unbounded else None
+    del finite
+    if unbounded is not None:
+        np.putmask(total, unbounded, 0.0)
     v = box_mean_2d(total, radius)
     d = box_mean_2d(d_total, radius)
-    del total, d_total, change
+    del total, d_total
     v *= np.float32(strength)
+    # min(1, v/d) in place: d <= v gives v/d >= 1 (also v/0 = inf), and 0/0 = NaN, which fmin drops
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        w = np.where(d > v, v / d, np.float32(1.0)).astype(np.float32, copy=False)
-    w[box_mean_2d(unbounded.astype(np.float32), radius) > 0] = 1.0
+        w = np.fmin(np.divide(v, d, out=v), np.float32(1.0), out=v)
+    if unbounded is not None:
+        w[box_mean_2d(unbounded.astype(np.float32), radius) > 0] = 1.0
     return w[..., None]
 
 
 def blend(noisy: np.ndarray, denoised: np.ndarray, w: np.ndarray) -> np.ndarray:
     """``noisy + w * (denoised - noisy)`` for an HxWx1 weight ``w``: float32, >= 0 where both inputs are."""
     noisy, denoised = np.asarray(noisy, np.float32), np.asarray(denoised, np.float32)
-    out = np.where(w >= 1, denoised, noisy + w * (denoised - noisy))  # w = 1: exactly the output
-    return out.astype(np.float32)
+    out = np.subtract(denoised, noisy)  # noisy + w * (denoised - noisy), one temporary
+    out *= w
+    out += noisy
+    np.copyto(out, denoised, where=np.broadcast_to(w >= 1, out.shape))  # w = 1: exactly the output
+    return out
 
 
 def guard(noisy: np.ndarray, denoised: np.ndarray, variance: np.ndarray,
