@@ -11,7 +11,14 @@ machine makes every number worse and small images worst: torch's two threads wai
 other at every layer). ``--threads`` sets torch's threads (0: the Denoiser's own choice).
 
     python -m benchmarks.inference [--quick] [--sizes 128x128,256x256,1280x720,1920x1080]
-        [--models u-fast,u-balanced,u-high,fast] [--precisions float32,bfloat16] [--repeat 5] [--threads N]
+        [--models u-fast,u-balanced,u-high,fast] [--precisions float32,bfloat16] [--repeat 5]
+        [--processes 3] [--threads N]
+
+``--processes N`` (default 3) repeats all of it in N fresh processes, one after the other, and pools
+their runs: on this 2-core VM a process keeps its own speed (the same calls took 10.8-15.0 ms in
+five processes at 128^2, and OIDN 25-43 ms), so one process is one sample of it. Each size's
+figure is the median of all runs of all processes; beside it the range of the per-process
+ratios to OIDN (``process_s_per_mp``: each process's median).
 
 Each model runs in every ``--precisions`` float format (:mod:`model.precision`; a bfloat16 column
 is named ``model@bfloat16``); the JSON records whether the CPU computes bfloat16 natively.
@@ -22,9 +29,12 @@ Also prints where the time of one call goes at the smallest size (stages of the 
 from __future__ import annotations
 
 import argparse
+import json
+import math
 import os
 import platform
 import statistics
+import subprocess
 import sys
 import tempfile
 import time
@@ -34,6 +44,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from benchmarks.readme_tables import ratio_range
 from imaging.atomic_io import write_json_atomic
 from imaging.usage import size_list
 from model.architectures import build_model
@@ -144,53 +155,98 @@ def _key(name: str, precision: str) -> str:
 def table(results: dict[str, Any]) -> list[str]:
     names = results["models"]
     lines = [f"{'size':>10} " + " ".join(f"{n + ' s/MP':>16}" for n in names) + f" {'OIDN s/MP':>10} "
-             + " ".join(f"{n + '/OIDN':>14}" for n in names)]
+             + " ".join(f"{n + '/OIDN':>22}" for n in names)]
     for size, row in results["sizes"].items():
         oidn = row.get("oidn", {}).get("s_per_mp")
         cells = " ".join(f"{row[n]['s_per_mp']:16.3f}" for n in names)
-        ratios = " ".join(f"{row[n]['s_per_mp'] / oidn:14.2f}" if oidn else f"{'-':>14}" for n in names)
-        lines.append(f"{size:>10} {cells} {oidn if oidn else float('nan'):10.3f} {ratios}")
+        ratios = []
+        for n in names:
+            spread = ratio_range(row, n)
+            text = f"{row[n]['s_per_mp'] / oidn:.2f}" if oidn else "-"
+            ratios.append(f"{text + (f' ({spread[0]:.2f}-{spread[1]:.2f})' if spread else ''):>22}")
+        lines.append(f"{size:>10} {cells} {oidn if oidn else float('nan'):10.3f} " + " ".join(ratios))
     return lines
+
+
+def measure_process(spec: dict[str, Any]) -> dict[str, Any]:
+    """What one process measures: every size (:func:`measure_size`) and, when ``spec["stages"]``,
+    the stages at the first size. ``spec``: checkpoint ``files`` by name, ``precisions``,
+    ``sizes``, ``repeat``, ``threads``."""
+    models = {_key(name, prec): Denoiser(path, threads=spec["threads"] or None, precision=prec)
+              for name, path in spec["files"].items() for prec in spec["precisions"]}
+    out: dict[str, Any] = {"models": list(models), "torch_threads": torch.get_num_threads(),
+                           "macs_per_pixel": {n: _macs(m.config) for n, m in models.items()}, "sizes": {}}
+    for w, h in spec["sizes"]:
+        row = out["sizes"][f"{w}x{h}"] = measure_size(w, h, models, spec["repeat"])
+        print(f"... {w}x{h}: " + ", ".join(f"{k} {v['s_per_mp']:.2f} s/MP" for k, v in row.items()),
+              file=sys.stderr, flush=True)
+    if spec["stages"]:
+        w, h = spec["sizes"][0]
+        out["stages_ms"] = {f"{w}x{h}": {n: stages(m, w, h, spec["repeat"]) for n, m in models.items()}}
+    return out
+
+
+def pool(processes: list[dict[str, Any]]) -> dict[str, Any]:
+    """One size table from several processes' (:func:`measure_process`): per size and variant the
+    median of all their runs, and each process's own median (``process_s_per_mp``)."""
+    sizes: dict[str, Any] = {}
+    for size in processes[0]["sizes"]:
+        mp = math.prod(int(v) for v in size.split("x")) / 1e6
+        sizes[size] = {}
+        for key in processes[0]["sizes"][size]:
+            runs = [r for p in processes for r in p["sizes"][size][key]["runs"]]
+            sizes[size][key] = {"seconds": statistics.median(runs), "s_per_mp": statistics.median(runs) / mp,
+                                "runs": runs,
+                                "process_s_per_mp": [p["sizes"][size][key]["s_per_mp"] for p in processes]}
+    return sizes
 
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--quick", action="store_true", help="256x256 only, one run")
+    p.add_argument("--quick", action="store_true", help="256x256 only, one run, one process")
     p.add_argument("--sizes", type=size_list, default=list(SIZES))
     p.add_argument("--models", default="u-fast,u-balanced,u-high,fast",
                    help="preset names (random weights) or checkpoint files")
     p.add_argument("--precisions", default="float32,bfloat16",
                    help="float formats of the networks (model.precision.PRECISIONS)")
     p.add_argument("--repeat", type=int, default=5)
+    p.add_argument("--processes", type=int, default=3, help="fresh processes whose runs are pooled")
     p.add_argument("--threads", type=int, default=0, help="torch threads (0: the Denoiser's choice)")
+    p.add_argument("--worker", nargs=2, metavar=("SPEC", "OUT"), help=argparse.SUPPRESS)
     args = p.parse_args()
+    if args.worker:  # one process's share: read its spec, write its measurements
+        spec_file, out_file = args.worker
+        write_json_atomic(Path(out_file), measure_process(json.loads(Path(spec_file).read_text())))
+        return
+    if args.processes < 1 or args.repeat < 1:
+        raise SystemExit("inference: --processes and --repeat must be at least 1")
     sizes = [(256, 256)] if args.quick else args.sizes
     repeat = 1 if args.quick else args.repeat
-    precisions = args.precisions.split(",")
+    processes = 1 if args.quick else args.processes
     load_before = os.getloadavg()
     with tempfile.TemporaryDirectory() as tmp:
-        files = {name: _checkpoint(name, Path(tmp)) for name in args.models.split(",")}
-        models = {_key(name, prec): Denoiser(path, threads=args.threads or None, precision=prec)
-                  for name, path in files.items() for prec in precisions}
-        names = list(models)
-        results: dict[str, Any] = {
-            "command": " ".join(["python -m benchmarks.inference", *sys.argv[1:]]),
-            "date": time.strftime("%Y-%m-%d %H:%M"),
-            "machine": {"platform": platform.platform(), "processor": platform.processor(),
-                        "cpus": os.cpu_count(), "torch": torch.__version__,
-                        "torch_threads": torch.get_num_threads(), "loadavg_before": load_before,
-                        "native_bfloat16": native_bfloat16()},
-            "quick": args.quick, "repeat": repeat, "models": names,
-            "macs_per_pixel": {n: _macs(m.config) for n, m in models.items()},
-            "sizes": {},
-        }
-        for w, h in sizes:
-            row = results["sizes"][f"{w}x{h}"] = measure_size(w, h, models, repeat)
-            print(f"... {w}x{h}: " + ", ".join(f"{k} {v['s_per_mp']:.2f} s/MP" for k, v in row.items()),
-                  file=sys.stderr, flush=True)
-        w, h = sizes[0]
-        results["stages_ms"] = {f"{w}x{h}": {n: stages(m, w, h, repeat) for n, m in models.items()}}
-    results["machine"]["loadavg_after"] = os.getloadavg()
+        files = {name: str(_checkpoint(name, Path(tmp))) for name in args.models.split(",")}
+        measured = []
+        for i in range(processes):
+            spec = {"files": files, "precisions": args.precisions.split(","), "sizes": sizes,
+                    "repeat": repeat, "threads": args.threads, "stages": i == 0}
+            spec_file, out_file = Path(tmp) / f"spec{i}.json", Path(tmp) / f"out{i}.json"
+            spec_file.write_text(json.dumps(spec))
+            print(f"process {i + 1}/{processes}", file=sys.stderr, flush=True)
+            subprocess.run([sys.executable, "-m", "benchmarks.inference", "--worker", str(spec_file),
+                            str(out_file)], check=True, cwd=Path(__file__).resolve().parents[1])
+            measured.append(json.loads(out_file.read_text()))
+    first = measured[0]
+    results: dict[str, Any] = {
+        "command": " ".join(["python -m benchmarks.inference", *sys.argv[1:]]),
+        "date": time.strftime("%Y-%m-%d %H:%M"),
+        "machine": {"platform": platform.platform(), "processor": platform.processor(),
+                    "cpus": os.cpu_count(), "torch": torch.__version__,
+                    "torch_threads": first["torch_threads"], "loadavg_before": load_before,
+                    "native_bfloat16": native_bfloat16(), "loadavg_after": os.getloadavg()},
+        "quick": args.quick, "repeat": repeat, "processes": processes, "models": first["models"],
+        "macs_per_pixel": first["macs_per_pixel"], "sizes": pool(measured), "stages_ms": first["stages_ms"],
+    }
     print("\n".join(table(results)))
     for size, per_model in results["stages_ms"].items():
         for name, parts in per_model.items():

@@ -176,6 +176,21 @@ def noise_guard(results: Results) -> list[str]:
 
 # --- speed -----------------------------------------------------------------------------------------
 
+def ratio_range(row: dict[str, Any], name: str) -> tuple[float, float] | None:
+    """The lowest and highest of ``name``'s per-process time ratios to OIDN in one size's row of
+    benchmarks/results/inference.json (None where fewer than two processes were recorded)."""
+    mine, oidn = row[name].get("process_s_per_mp"), row.get("oidn", {}).get("process_s_per_mp")
+    if not mine or not oidn or len(mine) < 2:
+        return None
+    ratios = [a / b for a, b in zip(mine, oidn)]
+    return min(ratios), max(ratios)
+
+
+def _ratio_range(row: dict[str, Any], name: str) -> str:
+    spread = ratio_range(row, name)
+    return f" ({spread[0]:.2f}-{spread[1]:.2f})" if spread else ""
+
+
 def inference(results: Results) -> list[str]:
     """Seconds per megapixel of the whole chain for every measured model and OIDN, per image size,
     and each model's time as a multiple of OIDN's in the same run."""
@@ -185,10 +200,15 @@ def inference(results: Results) -> list[str]:
     rows = []
     for size, row in data["sizes"].items():
         oidn = row.get("oidn", {}).get("s_per_mp")
-        ratios = [_f(row[n]["s_per_mp"] / oidn) + "x" if oidn and n in row else "-" for n in models]
+        ratios = [_f(row[n]["s_per_mp"] / oidn) + "x" + _ratio_range(row, n) if oidn and n in row else "-"
+                  for n in models]
         rows.append([size, *(_f(row.get(n, {}).get("s_per_mp")) for n in names), *ratios])
     macs = data.get("macs_per_pixel", {})
-    note = ("Seconds per megapixel of one call, median of the runs; OIDN 2.5 colour-only on the same image in "
+    processes = data.get("processes", 1)
+    note = ("Seconds per megapixel of one call, median of the runs"
+            + (f" of {processes} fresh processes (in brackets: the lowest and highest of the per-process "
+               "ratios)" if processes > 1 else "")
+            + "; OIDN 2.5 colour-only on the same image in "
             "the same run; the last columns: each model's time over OIDN's. `model@bfloat16`: the network in "
             "bfloat16 (model/precision.py; this CPU computes it natively: "
             f"{'yes' if data['machine'].get('native_bfloat16') else 'no'})."
