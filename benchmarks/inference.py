@@ -50,7 +50,7 @@ from imaging.usage import size_list
 from model.architectures import build_model
 from model.checkpoint import save_checkpoint
 from model.config import PRESETS, preset
-from model.precision import native_bfloat16
+from model.precision import PRECISIONS, native_bfloat16
 from model.unet import macs_per_pixel
 from pipeline.denoise import Denoiser
 from pipeline.oidn import oidn_available, oidn_denoise
@@ -220,21 +220,29 @@ def main() -> None:
         return
     if args.processes < 1 or args.repeat < 1:
         raise SystemExit("inference: --processes and --repeat must be at least 1")
+    precisions = args.precisions.split(",")
+    if not set(precisions) <= set(PRECISIONS):
+        raise SystemExit(f"inference: --precisions takes {', '.join(PRECISIONS)}, got {args.precisions!r}")
     sizes = [(256, 256)] if args.quick else args.sizes
     repeat = 1 if args.quick else args.repeat
     processes = 1 if args.quick else args.processes
     load_before = os.getloadavg()
     with tempfile.TemporaryDirectory() as tmp:
         files = {name: str(_checkpoint(name, Path(tmp))) for name in args.models.split(",")}
+        missing = [name for name, path in files.items() if not Path(path).is_file()]
+        if missing:
+            raise SystemExit(f"inference: not a preset nor a checkpoint file: {', '.join(missing)}")
         measured = []
         for i in range(processes):
-            spec = {"files": files, "precisions": args.precisions.split(","), "sizes": sizes,
+            spec = {"files": files, "precisions": precisions, "sizes": sizes,
                     "repeat": repeat, "threads": args.threads, "stages": i == 0}
             spec_file, out_file = Path(tmp) / f"spec{i}.json", Path(tmp) / f"out{i}.json"
             spec_file.write_text(json.dumps(spec))
             print(f"process {i + 1}/{processes}", file=sys.stderr, flush=True)
-            subprocess.run([sys.executable, "-m", "benchmarks.inference", "--worker", str(spec_file),
-                            str(out_file)], check=True, cwd=Path(__file__).resolve().parents[1])
+            worker = subprocess.run([sys.executable, "-m", "benchmarks.inference", "--worker", str(spec_file),
+                                     str(out_file)], cwd=Path(__file__).resolve().parents[1])
+            if worker.returncode != 0:
+                raise SystemExit(f"inference: measuring process {i + 1} failed (its error is above)")
             measured.append(json.loads(out_file.read_text()))
     first = measured[0]
     results: dict[str, Any] = {
