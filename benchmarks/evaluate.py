@@ -36,6 +36,7 @@ from benchmarks.eval_scenes import (CEILING_DB, EVAL_DIR, RESULTS, SEED, EvalSce
                                    run_record)
 from imaging.atomic_io import write_json_atomic, write_text_atomic
 from imaging.usage import COMMAND_ERRORS, OneLineParser, int_list, name_list
+from model.flips import FLIPS
 from model.precision import PRECISIONS
 from pipeline.denoise import Denoiser
 from pipeline.evaluation import BARE, OIDN, evaluate
@@ -171,6 +172,9 @@ def build_parser() -> OneLineParser:
                    help="float formats of the networks, each model in each (model.precision; "
                         "default auto: what a user on this CPU gets); a model in a second format "
                         "is named MODEL@FORMAT")
+    p.add_argument("--flips", type=int_list, default=(1,),
+                   help="test-time flips (model.flips: 1, 2, 4), each model with each; a model with "
+                        "N > 1 flips is named MODEL+flipsN")
     p.add_argument("--quiet", action="store_true", help="no progress bar and no table")
     return p
 
@@ -188,8 +192,13 @@ def main(argv: list[str] | None = None) -> int:
         unknown = [p for p in args.precisions if p not in PRECISIONS]
         if unknown:
             parser.error(f"--precisions: {', '.join(unknown)} is not one of {', '.join(PRECISIONS)}")
-        denoisers = {(spec or "default") + ("" if i == 0 else f"@{prec}"): Denoiser(spec, precision=prec)
-                     for spec in (args.models or [args.model]) for i, prec in enumerate(args.precisions)}
+        bad_flips = [str(n) for n in args.flips if n not in FLIPS]
+        if bad_flips:
+            parser.error(f"--flips: {', '.join(bad_flips)} is not one of {', '.join(map(str, FLIPS))}")
+        denoisers = {(spec or "default") + ("" if i == 0 else f"@{prec}") + ("" if n == 1 else f"+flips{n}"):
+                     Denoiser(spec, precision=prec, flips=n)
+                     for spec in (args.models or [args.model]) for i, prec in enumerate(args.precisions)
+                     for n in args.flips}
         for d in denoisers.values():  # first calls pay one-off set-up: keep it out of the timings
             d.denoise_array(np.full((64, 64, 3), 0.5, dtype=np.float32))
         record = run_record("benchmarks.evaluate", argv)
@@ -213,7 +222,8 @@ def write_results(out: Path, rows: dict[str, Any], images: dict[str, dict[str, n
     summary = summarize(rows, spps, ceiling_db)
     first = next(iter(denoisers.values()))
     models = {name: {"path": str(d.path), "sha256": d.sha256, "config": d.config.to_dict(),
-                     "step": d.meta.get("step"), "precision": d.precision} for name, d in denoisers.items()}
+                     "step": d.meta.get("step"), "precision": d.precision, "flips": d.flips}
+              for name, d in denoisers.items()}
     result = {**record, "path": PATH, "model": next(iter(models.values())), "models": models, "spp": spps,
               "seed": SEED, "ceiling_db": ceiling_db, "summary": summary, "scenes": rows}
     out.mkdir(parents=True, exist_ok=True)

@@ -32,8 +32,10 @@ from imaging.blocks import block_rows, row_blocks
 from imaging.tiling import Core, Tile, run_windows
 from model.architectures import alignment, inference_bytes_per_pixel, receptive_radius
 from model.config import ModelConfig
+from model.flips import FLIPS, check_flips
 from model.noise_input import noise_channels
 from model.transfer import HDR_MAX, TransferFunction, get_transfer
+from model.unet import pad_to_alignment
 
 SKIP_CELL = 64  # pixels per side of the cells the skip test looks at (a multiple of every alignment <= 64)
 # Scratch of the passes over the whole image (log-average luminance, the skip test, sanitising)
@@ -117,12 +119,15 @@ def _scaled(rgb: np.ndarray, scale: float) -> np.ndarray:
     return sanitize(rgb)
 
 
-def tile_bytes_per_pixel(config: ModelConfig, folded: bool = True, itemsize: int = 4) -> float:
+def tile_bytes_per_pixel(config: ModelConfig, folded: bool = True, itemsize: int = 4, flips: int = 1) -> float:
     """Peak scratch bytes per window pixel of one tile of :func:`denoise_image`, beyond
     :data:`TILE_FIXED_BYTES`: the forward pass (:func:`model.architectures.inference_bytes_per_pixel`)
     or the chain's steps around it (transfer, noise channels, inverse, with the input tensor),
-    whichever needs more."""
-    return max(inference_bytes_per_pixel(config, folded, itemsize),
+    whichever needs more; with ``flips`` > 1, plus what :func:`flip_average` holds beside a
+    forward pass (the padded and the mirrored input, float32; the sum, an output and its mirror,
+    3 channels float32 each)."""
+    flip_bytes = 8.0 * config.image_channels + 36.0 if flips > 1 else 0.0
+    return max(inference_bytes_per_pixel(config, folded, itemsize) + flip_bytes,
                TILE_CHAIN_BYTES_PER_PIXEL + 4.0 * config.image_channels)
 
 
@@ -176,6 +181,22 @@ def neighbourhood_max(image: torch.Tensor, radius: int) -> torch.Tensor:
     return _window_max(_window_max(image.amax(dim=2), 1, radius), 0, radius)
 
 
+def flip_average(model: nn.Module, x: torch.Tensor, flips: int, align: int) -> torch.Tensor:
+    """The mean of ``model``'s outputs over the ``flips`` mirrored copies of ``x`` (:mod:`model.flips`),
+    each mirrored back. The input is first padded to the network's alignment (bottom and right,
+    as the network itself pads), so that a mirrored tile window keeps the whole image's pooling
+    grid and tiles stay exact; the output is cropped back."""
+    if flips == 1:
+        return model(x)
+    h, w = x.shape[-2:]
+    padded = pad_to_alignment(x, align)
+    total = None
+    for dims in FLIPS[flips]:
+        y = model(padded.flip(dims)).flip(dims) if dims else model(padded)
+        total = y if total is None else total.add_(y)
+    return total.div_(len(FLIPS[flips]))[..., :h, :w]
+
+
 def _aux_window(aux: Aux, t: Tile) -> torch.Tensor:
     """The tile window of the aux buffers as an hxwx6 float32 tensor, non-finite values -> 0."""
     parts = aux if isinstance(aux, (tuple, list)) else [aux]
@@ -186,7 +207,7 @@ def _aux_window(aux: Aux, t: Tile) -> torch.Tensor:
 def denoise_image(model: nn.Module, color: np.ndarray, aux: Aux = None,
                   core: Core = 256, progress: Callable[[int, int], None] | None = None,
                   variance: np.ndarray | None = None, skip_below: float | None = None,
-                  max_bytes: float = DEFAULT_PASS_BYTES) -> np.ndarray:
+                  max_bytes: float = DEFAULT_PASS_BYTES, flips: int = 1) -> np.ndarray:
     """Denoise HxWx3 linear radiance -> HxWx3 float32 linear radiance >= 0 (at most HDR_MAX divided
     by :func:`exposure_scale`, i.e. HDR_MAX unless the image is unusually bright).
 
@@ -199,11 +220,13 @@ def denoise_image(model: nn.Module, color: np.ndarray, aux: Aux = None,
     docstring). ``core``: tile core side in pixels, or (rows, columns) (memory bound of the tiles,
     :func:`tile_bytes_per_pixel`; the result does not depend on it). ``max_bytes``: scratch
     bound of the passes over the whole image (exposure, the skip test, copying skipped parts);
-    the result does not depend on it either. The model runs in eval mode; its previous mode is
-    restored.
+    the result does not depend on it either. ``flips``: average the network over 1, 2 or 4
+    mirrored copies of each window (:func:`flip_average`; more time, a little more accuracy,
+    docs/speed.md). The model runs in eval mode; its previous mode is restored.
     """
     config = model.config
     _check_inputs(config, color, aux, variance)
+    check_flips(flips)
     transfer = get_transfer(config.transfer)
     height, width = color.shape[:2]
     scale = exposure_scale(color, block_rows(width, PASS_BYTES_PER_PIXEL, max_bytes, 256))
@@ -235,7 +258,7 @@ def denoise_image(model: nn.Module, color: np.ndarray, aux: Aux = None,
             del var
         bound = neighbourhood_max(encoded, radius)
         del rgb, encoded
-        y = model(x)[0]
+        y = flip_average(model, x, flips, align)[0]
         del x
         y = torch.minimum(torch.nan_to_num_(y, nan=0.0).clamp_(0.0, 1.0), bound, out=y)
         del bound

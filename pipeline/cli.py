@@ -11,6 +11,7 @@ from typing import Any
 from imaging.progress import tqdm_bars
 from imaging.render import DEFAULT_MAX_MEMORY_MB
 from imaging.usage import OneLineParser, int_list, name_list, name_value, positive_float, positive_int
+from model.flips import FLIPS
 from model.precision import PRECISIONS
 from pipeline.evaluation import RenderSettings
 
@@ -18,6 +19,8 @@ from pipeline.evaluation import RenderSettings
 PRECISION_HELP = ("float format of the network: bfloat16 halves its time on CPUs with native bfloat16 "
                   "(AMX, AVX512-BF16) at a measured cost in quality (docs/speed.md); auto: bfloat16 "
                   "for the multi-scale nets where the CPU has it natively, else float32")
+FLIPS_HELP = ("average the network over 1, 2 or 4 mirrored copies of the image: 2x or 4x the "
+              "network's time for about 0.1 or 0.2 dB (docs/speed.md)")
 SKIP_HELP = ("leave the 64-px cells whose noise (transfer-space standard deviation from the halves) is "
              "below NOISE out of the network; they keep the render, as the noise guard would "
              "(benchmarks/skip.py measures time and change; default: the network everywhere)")
@@ -38,6 +41,7 @@ def add_render_arguments(p: argparse.ArgumentParser, reference_required: bool, g
     p.add_argument("--no-noise-guard", action="store_true", help=guard_help)
     p.add_argument("--skip-below", type=positive_float, metavar="NOISE", help=SKIP_HELP)
     p.add_argument("--precision", choices=PRECISIONS, default="auto", help=PRECISION_HELP)
+    p.add_argument("--flips", type=int, choices=tuple(FLIPS), default=1, help=FLIPS_HELP)
 
 
 def render_settings(args: argparse.Namespace) -> RenderSettings:
@@ -45,7 +49,7 @@ def render_settings(args: argparse.Namespace) -> RenderSettings:
     return RenderSettings(scene=args.scene, resolution=tuple(args.res) if args.res else None, seed=args.seed,
                           params=dict(args.param), max_memory_mb=args.max_memory_mb,
                           noise_guard=not args.no_noise_guard, skip_below=args.skip_below,
-                          precision=args.precision, reference=args.reference,
+                          precision=args.precision, flips=args.flips, reference=args.reference,
                           reference_spp=args.reference_spp)
 
 
@@ -126,6 +130,7 @@ def denoise_parser() -> OneLineParser:
     p.add_argument("--max-memory-mb", type=float, default=DEFAULT_MAX_MEMORY_MB, help="tile memory bound")
     p.add_argument("--skip-below", type=positive_float, metavar="NOISE", help=SKIP_HELP)
     p.add_argument("--precision", choices=PRECISIONS, default="auto", help=PRECISION_HELP)
+    p.add_argument("--flips", type=int, choices=tuple(FLIPS), default=1, help=FLIPS_HELP)
     return p
 
 
@@ -145,7 +150,7 @@ def denoise_main(argv: list[str] | None = None) -> int:
                             model=args.model, reference=args.reference, layer=args.layer,
                             variance_layer=args.variance_layer, rgb_only=args.rgb_only, spp=args.spp,
                             noise_guard=not args.no_noise_guard, max_memory_mb=args.max_memory_mb,
-                            skip_below=args.skip_below, precision=args.precision)
+                            skip_below=args.skip_below, precision=args.precision, flips=args.flips)
     result, code = parser.attempt(lambda: denoise_file(cfg))
     if code:
         return code

@@ -102,21 +102,27 @@ class Denoiser:
     whose transfer-space noise is below this out of the network (:func:`model.infer.denoise_image`).
     ``precision``: the float format of the folded network (:mod:`model.precision`: ``auto`` is
     bfloat16 for a multi-scale network on a CPU with native bfloat16, else float32; the training
-    module is always float32).
+    module is always float32). ``flips``: average the network over 1, 2 or 4 mirrored copies of
+    each tile (:func:`model.infer.flip_average`): 2x or 4x the network's time for ~0.1 or ~0.2 dB
+    (docs/speed.md).
     """
 
     def __init__(self, checkpoint: str | Path | None = None,
                  max_memory_mb: float = DEFAULT_MAX_MEMORY_MB, threads: int | None = None,
-                 optimize: bool = True, skip_below: float | None = None, precision: str = "auto") -> None:
+                 optimize: bool = True, skip_below: float | None = None, precision: str = "auto",
+                 flips: int = 1) -> None:
         import torch
 
         from model.checkpoint import load_model
         from model.architectures import prepare_for_inference, receptive_radius
         from model.precision import check_precision, compute_dtype
 
+        from model.flips import check_flips
+
         path = resolve_model(checkpoint)
         try:
             check_precision(precision)  # before the checkpoint is read
+            self.flips = check_flips(flips)
         except ValueError as exc:
             raise DenoiserError(str(exc)) from None
         if not 0 < max_memory_mb < float("inf"):  # also refuses NaN
@@ -162,7 +168,7 @@ class Denoiser:
         """Peak scratch bytes per window pixel of one tile (:func:`model.infer.tile_bytes_per_pixel`)."""
         from model.infer import tile_bytes_per_pixel
 
-        return tile_bytes_per_pixel(self.config, self.optimize, self.dtype.itemsize)
+        return tile_bytes_per_pixel(self.config, self.optimize, self.dtype.itemsize, self.flips)
 
     def core_size(self) -> int:
         """Tile core side that keeps one tile within ``max_memory_mb``: its window's pixels at
@@ -214,7 +220,8 @@ class Denoiser:
         count = [0]
         out = denoise_image(self.net, rgb, aux, self.cores(height, width),
                             progress=lambda n, total: count.__setitem__(0, total),
-                            variance=variance, skip_below=self.skip_below, max_bytes=self.max_bytes)
+                            variance=variance, skip_below=self.skip_below, max_bytes=self.max_bytes,
+                            flips=self.flips)
         network = None
         if keep_network:  # the guard changes ``out`` in place
             network = out.copy() if variance is not None else out

@@ -54,6 +54,7 @@ class DenoiseFileConfig:
     max_memory_mb: float = 1024.0
     skip_below: float | None = None
     precision: str = "auto"
+    flips: int = 1
 
 
 @dataclass
@@ -151,7 +152,7 @@ def denoise_file(cfg: DenoiseFileConfig) -> dict[str, Any]:
     if len(cfg.inputs) == 2 and cfg.variance_layer is not None:
         raise DenoiserError("two halves give the variance: --variance-layer is for a single input")
     denoiser = Denoiser(cfg.model, max_memory_mb=cfg.max_memory_mb, skip_below=cfg.skip_below,
-                        precision=cfg.precision)
+                        precision=cfg.precision, flips=cfg.flips)
     images = [read_input(p, cfg.layer, cfg.variance_layer) for p in cfg.inputs]
     image = images[0] if len(images) == 1 else combine_halves(*images, max_bytes=denoiser.max_bytes)
     ref = read_input(cfg.reference).rgb if cfg.reference else None
@@ -168,7 +169,7 @@ def denoise_file(cfg: DenoiseFileConfig) -> dict[str, Any]:
         "input": cfg.inputs[0] if len(cfg.inputs) == 1 else list(cfg.inputs), "output": cfg.output,
         "layer": image.layer.name if image.layer else None, "layout": layout,
         "denoise_s": result.seconds, "model": denoiser.name, "precision": denoiser.precision,
-        "nonfinite_values": result.nonfinite,
+        "flips": denoiser.flips, "nonfinite_values": result.nonfinite,
         "negative_values": result.negative,
         "noise_guard": None if variance is None else {
             "variance": image.variance_layer, "spp": spp, "strength": strength,

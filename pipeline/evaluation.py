@@ -44,7 +44,8 @@ class RenderSettings:
     ``noise_guard``: render in two halves and guard the models (off: one piece, the network's
     output as it is); ``skip_below``: with the halves, leave the parts whose noise is below this out
     of the network (:class:`pipeline.denoise.Denoiser`; None: run it everywhere); ``precision``: the
-    denoisers' float format (:mod:`model.precision`); the reference is an EXR file or a render at ``reference_spp`` (another seed)."""
+    denoisers' float format (:mod:`model.precision`); ``flips``: test-time flips of the networks
+    (:mod:`model.flips`); the reference is an EXR file or a render at ``reference_spp`` (another seed)."""
 
     scene: str
     resolution: tuple[int, int] | None = None
@@ -54,6 +55,7 @@ class RenderSettings:
     noise_guard: bool = True
     skip_below: float | None = None
     precision: str = "auto"
+    flips: int = 1
     reference: str | None = None
     reference_spp: int | None = None
 
@@ -71,8 +73,10 @@ class RenderSettings:
 
 
 def make_denoiser(model: str | Path | None, settings: RenderSettings) -> Denoiser:
-    """The denoiser of ``model`` with the settings' memory bound, precision and, with the halves, skipping."""
+    """The denoiser of ``model`` with the settings' memory bound, precision, flips and, with the
+    halves, skipping."""
     return Denoiser(model, max_memory_mb=settings.max_memory_mb, precision=settings.precision,
+                    flips=settings.flips,
                     skip_below=settings.skip_below if settings.noise_guard else None)
 
 

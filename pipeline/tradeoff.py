@@ -162,7 +162,7 @@ def measure(cfg: TradeoffConfig, progress: ProgressFactory | None = None) -> dic
         "scene": str(settings.scene), "resolution": [w, h], "megapixels": w * h / 1e6, "seed": settings.seed,
         "reference": ref_info, "mitsuba": metadata.version("mitsuba"), "variant": noisy.variant,
         "models": {name: {"checkpoint": str(d.path), "sha256": file_sha256(d.path),
-                          "precision": d.precision, "config": d.config.to_dict()} for name, d in models.items()},
+                          "precision": d.precision, "flips": d.flips, "config": d.config.to_dict()} for name, d in models.items()},
     }
     return analyse(points, info, cfg.metric)
 

@@ -9,6 +9,7 @@ import numpy as np
 import OpenEXR
 import pytest
 
+from imaging.errors import DenoiserError
 from imaging.exr import read_exr, write_exr
 from imaging.exr_layers import read_exr_file
 from pipeline.cli import denoise_main
@@ -146,7 +147,21 @@ def test_halves_command(tmp_path: Path, rng: np.random.Generator, ckpt: Path, de
     assert "small.exr: half is 16x8" in capsys.readouterr().err
 
 
+def test_flips_flag(tmp_path: Path, rng: np.random.Generator, ckpt: Path,
+                    capsys: pytest.CaptureFixture) -> None:
+    img = rng.random((H, W, 3)).astype(np.float32)
+    write_exr(tmp_path / "in.exr", img)
+    printed = run(capsys, str(tmp_path / "in.exr"), str(tmp_path / "o.exr"), "--model", str(ckpt), "--flips", "4")
+    assert printed["flips"] == 4
+    expected = Denoiser(ckpt, flips=4).denoise_array(img).image
+    np.testing.assert_array_equal(read_exr(tmp_path / "o.exr").rgb, expected)
+    assert Denoiser(ckpt, flips=4).bytes_per_pixel() > Denoiser(ckpt).bytes_per_pixel()  # the tiles shrink
+    with pytest.raises(DenoiserError, match="flips must be one of 1, 2, 4"):
+        Denoiser(ckpt, flips=3)
+
+
 @pytest.mark.parametrize("argv, needle", [
+    (["in.exr", "o.exr", "--flips", "3"], "--flips"),
     (["--halves", "a.exr", "b.exr", "in.exr", "o.exr"], "only the output"),
     (["--halves", "a.exr", "b.exr", "o.exr", "--variance-layer", "v"], "exclude each other"),
     (["in.exr"], "an input and an output"),

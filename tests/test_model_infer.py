@@ -12,7 +12,8 @@ import torch
 
 from model.checkpoint import save_checkpoint
 from model.config import PRESETS, ModelConfig
-from model.infer import BOUND_RADIUS, denoise_image, neighbourhood_max, noisy_region
+from model.flips import FLIPS, check_flips
+from model.infer import BOUND_RADIUS, denoise_image, flip_average, neighbourhood_max, noisy_region
 from model.architectures import alignment, build_model
 from model.transfer import HDR_MAX, get_transfer
 
@@ -55,6 +56,53 @@ def test_denoise_image_runs_in_eval_mode_and_restores_training() -> None:
     got = denoise_image(model, color, core=16)  # the BN statistics are used, not the batch's
     assert model.training and all(m.training for m in model.modules())
     np.testing.assert_array_equal(got, want)
+
+
+def _tiny_unet() -> torch.nn.Module:
+    from tests.test_model_unet import TINY, trained_like
+    return trained_like(TINY)
+
+
+def _flat_with_output() -> torch.nn.Module:
+    """:func:`_model` with a non-zero output conv (at init the flat net returns its input)."""
+    model = _model()
+    with torch.no_grad():
+        torch.nn.init.normal_(model.tail[-1].weight, std=0.05)
+    return model
+
+
+@pytest.mark.parametrize("flips", [2, 4])
+@pytest.mark.parametrize("kind", ["flat", "unet"])
+def test_flipped_tiles_equal_the_flipped_whole_image(kind: str, flips: int) -> None:
+    """Each window is padded to the alignment before it is mirrored, so a u-net's mirrored window
+    keeps the whole image's pooling grid (without that padding the tiles differ by ~5 here)."""
+    model = _flat_with_output() if kind == "flat" else _tiny_unet()
+    color = (np.random.default_rng(flips).random((75, 98, 3)) ** 3 * 5).astype(np.float32)
+    whole = denoise_image(model, color, core=512, flips=flips)
+    tiled = denoise_image(model, color, core=16, flips=flips)
+    np.testing.assert_allclose(tiled, whole, rtol=1e-5, atol=2e-5)
+    assert np.abs(whole - denoise_image(model, color, core=512)).max() > 1e-3  # the flips do something
+
+
+@pytest.mark.parametrize("kind", ["flat", "unet"])
+def test_four_flips_make_the_network_mirror_equivariant(kind: str) -> None:
+    model = _flat_with_output() if kind == "flat" else _tiny_unet()
+    align = alignment(model.config)
+    x = torch.rand(1, model.config.image_channels, 2 * align if align > 1 else 19, 3 * align if align > 1 else 23)
+    with torch.no_grad():
+        y = flip_average(model, x, 4, align)
+        for dims in FLIPS[4][1:]:
+            torch.testing.assert_close(flip_average(model, x.flip(dims), 4, align), y.flip(dims),
+                                       rtol=1e-5, atol=1e-5)
+        assert torch.equal(flip_average(model, x, 1, align), model(x))
+
+
+def test_flips_other_than_1_2_4_are_refused() -> None:
+    assert [check_flips(n) for n in (1, 2, 4)] == [1, 2, 4]
+    with pytest.raises(ValueError, match="flips must be one of 1, 2, 4"):
+        check_flips(3)
+    with pytest.raises(ValueError, match="flips"):
+        denoise_image(_model(), np.ones((8, 8, 3), np.float32), flips=0)
 
 
 def _brute_max(image: np.ndarray, r: int) -> np.ndarray:

@@ -51,6 +51,7 @@ def test_render_and_denoise_writes_everything(demo_run: Path, ckpt: Path) -> Non
             assert np.isfinite(row[key]), key
     assert metrics["model"]["name"] == "tiny.ckpt" and len(metrics["model"]["sha256"]) == 64
     assert metrics["model"]["precision"] == Denoiser(ckpt).precision  # auto: what this CPU gets
+    assert metrics["model"]["flips"] == 1
     assert all(v >= 0 for v in metrics["timings"].values())
     assert read_exr(demo_run / "denoised.exr").rgb.shape == (24, 32, 3)
     html = (demo_run / "report.html").read_text()
