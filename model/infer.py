@@ -227,6 +227,8 @@ def denoise_image(model: nn.Module, color: np.ndarray, aux: Aux = None,
     config = model.config
     _check_inputs(config, color, aux, variance)
     check_flips(flips)
+    if flips > 1 and config.aux_inputs:  # a mirrored image has mirrored normals: not modelled
+        raise ValueError("test-time flips need a model without albedo/normal inputs (flips 1 here)")
     transfer = get_transfer(config.transfer)
     height, width = color.shape[:2]
     scale = exposure_scale(color, block_rows(width, PASS_BYTES_PER_PIXEL, max_bytes, 256))

@@ -133,6 +133,8 @@ class Denoiser:
         use_huge_pages()  # before the first large tensor: the tiles' temporaries fault per 2 MiB
         self.path = path
         self.model, self.config, self.meta = load_model(path)
+        if self.flips > 1 and self.config.aux_inputs:
+            raise DenoiserError(f"{path.name}: test-time flips need a model without albedo/normal inputs")
         self.model.eval()
         self.optimize = optimize
         self.dtype = compute_dtype(precision, self.config.multiscale) if optimize else torch.float32

@@ -18,6 +18,7 @@ from model.config import ModelConfig
 from model.architectures import prepare_for_inference
 from model.inference_net import bn_affine, fold_conv_bn, relu_affine_as_clamp
 from model.architectures import build_model
+from imaging.errors import DenoiserError
 from pipeline.denoise import Denoiser
 
 NET_ATOL = 2e-5
@@ -96,3 +97,11 @@ def test_denoiser_optimized_equals_plain(tmp_path: Path, rng: np.random.Generato
     plain = Denoiser(path, max_memory_mb=0.2, optimize=False).denoise_array(img)
     assert fast.tiles > 1
     np.testing.assert_allclose(fast.image, plain.image, rtol=CHAIN_RTOL, atol=1e-6)
+
+
+def test_denoiser_refuses_flips_for_a_model_with_aux_inputs(tmp_path: Path) -> None:
+    path = tmp_path / "aux.ckpt"
+    save_checkpoint(path, _trained_like(ModelConfig(layers=2, growth=4, init_features=8, aux_inputs=True)), step=0)
+    assert Denoiser(path).flips == 1
+    with pytest.raises(DenoiserError, match="flips need a model without albedo/normal"):
+        Denoiser(path, flips=2)

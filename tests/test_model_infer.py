@@ -103,6 +103,9 @@ def test_flips_other_than_1_2_4_are_refused() -> None:
         check_flips(3)
     with pytest.raises(ValueError, match="flips"):
         denoise_image(_model(), np.ones((8, 8, 3), np.float32), flips=0)
+    aux = np.zeros((8, 8, 6), np.float32)
+    with pytest.raises(ValueError, match="without albedo/normal"):
+        denoise_image(_model(aux_inputs=True), np.ones((8, 8, 3), np.float32), aux, flips=2)
 
 
 def _brute_max(image: np.ndarray, r: int) -> np.ndarray:
