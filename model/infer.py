@@ -69,7 +69,8 @@ def log_average_luminance(color: np.ndarray, rows: int = 256) -> float:
     (0.0 if there are none); computed in row blocks, without a whole-image copy."""
     total, count = 0.0, 0
     for y in range(0, color.shape[0], rows):
-        lum = np.asarray(color[y:y + rows], dtype=np.float64) @ _LUMINANCE
+        with np.errstate(invalid="ignore", over="ignore"):  # inf - inf: NaN, dropped below
+            lum = np.asarray(color[y:y + rows], dtype=np.float64) @ _LUMINANCE
         lum = lum[np.isfinite(lum) & (lum > 0)]
         total, count = total + float(np.log(lum).sum()), count + lum.size
     return math.exp(total / count) if count else 0.0
