@@ -168,6 +168,8 @@ class InferenceNet(nn.Module):
             tail_bn, _, tail_conv = model.tail
             self.tail_pre = _AffineReLU(*bn_affine(tail_bn))
             self.tail = _Conv(tail_conv.weight.detach().clone(), None, relu=False)
+        # channels of the widest clamp input (the tail's affine map included): the scratch's per pixel
+        self.clamp_width = max([c.lo.shape[1] for c in self.conv1] + [self.tail_pre.scale.shape[1]])
         self.to(dtype)
         self.eval()
 
@@ -190,8 +192,7 @@ class InferenceNet(nn.Module):
         x = network_input(image).contiguous(memory_format=torch.channels_last).to(self.dtype)
         x = self.head(x)
         n, _, h, w = x.shape
-        widest = max([c.lo.shape[1] for c in self.conv1] + [self.tail_pre.scale.shape[1]])
-        scratch = torch.empty(n * widest * h * w, dtype=self.dtype)  # the clamps' (scratch_view)
+        scratch = torch.empty(n * self.clamp_width * h * w, dtype=self.dtype)  # the clamps' (scratch_view)
         x = self._dense(x, scratch) if self.config.arch == "densenet" else self._plain(x, scratch)
         out = self.tail(self.tail_pre(x, scratch)).float()
         return out + image[:, :3] if self.config.output == "residual" else out

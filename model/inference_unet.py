@@ -119,6 +119,14 @@ class InferenceUNet(nn.Module):
             self.tail_pre = _AffineReLU(scale, shift)
             self.tail = _Conv(tail_weight, None, relu=False)
             self.skip = _Conv(model.skip.weight.detach().clone(), model.skip.bias.detach().clone(), relu=False)
+        # per level, the channels of its widest clamp input (level i runs its encoder and decoder
+        # blocks' clamps, its transition down's and, for i > 0, the transition up from it to level
+        # i-1; level n the bottom block's; level 0 also the tail's affine map): the scratch's size
+        clamps = [[*self.enc[i].conv1, *self.dec[i].conv1, self.down[i]] for i in range(n)] + [list(self.bottom.conv1)]
+        for i in range(1, n + 1):
+            clamps[i].append(self.up[i - 1])
+        self.clamp_widths = [max(c.lo.shape[1] for c in level) for level in clamps]
+        self.clamp_widths[0] = max(self.clamp_widths[0], self.tail_pre.scale.shape[1])
         self.to(dtype)
         self.eval()
 
@@ -155,13 +163,8 @@ class InferenceUNet(nn.Module):
 
     def scratch_elements(self, n: int, h: int, w: int) -> int:
         """Elements of the clamps' scratch for a stem output of n x h x w pixels: the largest
-        clamp input (channels x pixels of its level; level i has (h >> i) x (w >> i) pixels)."""
-        def clamps(i: int) -> list[_ClampConv1x1]:  # the clamps that run at level i
-            here = [] if i == len(self.enc) else [*self.enc[i].conv1, *self.dec[i].conv1, self.down[i]]
-            return here + (list(self.bottom.conv1) if i == len(self.enc) else []) + \
-                ([self.up[i - 1]] if i > 0 else [])
-        need = [c.lo.shape[1] * (h >> i) * (w >> i) for i in range(len(self.enc) + 1) for c in clamps(i)]
-        return n * max(need + [self.tail_pre.scale.shape[1] * h * w])
+        clamp input (:attr:`clamp_widths` x pixels of its level; level i has (h >> i) x (w >> i))."""
+        return n * max(c * (h >> i) * (w >> i) for i, c in enumerate(self.clamp_widths))
 
     def forward(self, image: torch.Tensor) -> torch.Tensor:
         h, w = image.shape[-2:]
