@@ -44,7 +44,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from benchmarks.readme_tables import ratio_range
+from benchmarks.readme_tables import ratio_range_text
 from imaging.atomic_io import write_json_atomic
 from imaging.usage import size_list
 from model.architectures import build_model
@@ -161,9 +161,8 @@ def table(results: dict[str, Any]) -> list[str]:
         cells = " ".join(f"{row[n]['s_per_mp']:16.3f}" for n in names)
         ratios = []
         for n in names:
-            spread = ratio_range(row, n)
             text = f"{row[n]['s_per_mp'] / oidn:.2f}" if oidn else "-"
-            ratios.append(f"{text + (f' ({spread[0]:.2f}-{spread[1]:.2f})' if spread else ''):>22}")
+            ratios.append(f"{text + ratio_range_text(row, n):>22}")
         lines.append(f"{size:>10} {cells} {oidn if oidn else float('nan'):10.3f} " + " ".join(ratios))
     return lines
 

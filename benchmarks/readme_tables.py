@@ -186,7 +186,8 @@ def ratio_range(row: dict[str, Any], name: str) -> tuple[float, float] | None:
     return min(ratios), max(ratios)
 
 
-def _ratio_range(row: dict[str, Any], name: str) -> str:
+def ratio_range_text(row: dict[str, Any], name: str) -> str:
+    """`` (lo-hi)`` of :func:`ratio_range`, or nothing where it is None."""
     spread = ratio_range(row, name)
     return f" ({spread[0]:.2f}-{spread[1]:.2f})" if spread else ""
 
@@ -200,7 +201,7 @@ def inference(results: Results) -> list[str]:
     rows = []
     for size, row in data["sizes"].items():
         oidn = row.get("oidn", {}).get("s_per_mp")
-        ratios = [_f(row[n]["s_per_mp"] / oidn) + "x" + _ratio_range(row, n) if oidn and n in row else "-"
+        ratios = [_f(row[n]["s_per_mp"] / oidn) + "x" + ratio_range_text(row, n) if oidn and n in row else "-"
                   for n in models]
         rows.append([size, *(_f(row.get(n, {}).get("s_per_mp")) for n in names), *ratios])
     macs = data.get("macs_per_pixel", {})
