@@ -1,0 +1,130 @@
+"""Our own validation scenes: several checkpoints side by side with OIDN colour-only on the same images.
+
+The trainer validates one model on its own run's held-out scenes, so two runs with different data
+report on different images. This scores every ``--models`` checkpoint on one set: the ``val`` split
+of each ``--data`` folder (scenes with index below ``--max-scenes``, at every spp the dataset has),
+as the trainer's validation does (:class:`model.validate.Validator`: the network in float32, whole
+images, tonemapped PSNR and relMSE), with the noisy input and OIDN 2.5 colour-only on the same
+images, per spp and overall.
+
+    python -m benchmarks.validation --data data/train256 --data data/media256 --models u-balanced,fast
+
+Writes benchmarks/results/validation.json and validation.md (``--out`` for another folder).
+"""
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from benchmarks.eval_scenes import RESULTS, finish_record, run_record
+from imaging.atomic_io import write_json_atomic, write_text_atomic
+from imaging.usage import COMMAND_ERRORS, OneLineParser, name_list, positive_int
+from model.checkpoint import load_model
+from imaging.errors import DatasetError
+from model.dataset import ValImage, load_val_images, read_manifest
+from model.train import DATASET_ID_STRIDE
+from model.validate import Validator
+from pipeline.denoise import resolve_model
+
+
+def val_images(folders: list[Path], max_scenes: int | None, noise: bool) -> list[ValImage]:
+    """The ``val`` scenes of every folder (index below ``max_scenes``), scene ids offset per folder
+    as in training. Raises :class:`DatasetError` when there are none."""
+    images: list[ValImage] = []
+    for k, root in enumerate(folders):
+        records = [r for r in read_manifest(root) if r.split == "val" and (not max_scenes or r.index < max_scenes)]
+        images += load_val_images(root, records, aux=False, noise=noise, index_offset=k * DATASET_ID_STRIDE)
+    if not images:
+        raise DatasetError(f"no 'val' scenes in {', '.join(map(str, folders))}")
+    return images
+
+
+def score(models: dict[str, Path], folders: list[Path], max_scenes: int | None,
+          oidn: bool = True) -> dict[str, Any]:
+    """Every model's :meth:`Validator.run` result on the same images, with the noisy input's and
+    OIDN's (``baselines``: per spp, from the first model's run). Raises ValueError for a model
+    with albedo/normal inputs (the validation sets here are colour only)."""
+    loaded = {name: load_model(path) for name, path in models.items()}
+    aux = [name for name, (_, config, _) in loaded.items() if config.aux_inputs]
+    if aux:
+        raise ValueError(f"{', '.join(aux)}: models with albedo/normal inputs are not scored here")
+    images = val_images(folders, max_scenes, noise=any(c.noise_input for _, c, _ in loaded.values()))
+    validator = Validator(images, use_oidn=oidn)  # caches the noisy and OIDN scores: equal for every model
+    runs = {name: validator.run(model) for name, (model, _, _) in loaded.items()}
+    results = {name: {"path": str(models[name]), "config": config.to_dict(), "step": meta.get("step"),
+                      "psnr": runs[name]["psnr"], "relmse": runs[name]["relmse"],
+                      "per_spp": {s: {m: v[m]["ours"] for m in ("psnr", "relmse")}
+                                  for s, v in runs[name]["per_spp"].items()}}
+               for name, (_, config, meta) in loaded.items()}
+    first = next(iter(runs.values()))["per_spp"]
+    baselines = {who: {s: {m: v[m][who] for m in ("psnr", "relmse")} for s, v in first.items()}
+                 for who in ("noisy", "oidn")}
+    for who, per_spp in baselines.items():
+        present = [v["psnr"] for v in per_spp.values() if v["psnr"] is not None]
+        baselines[who] = {"per_spp": per_spp, "psnr": sum(present) / len(present) if present else None}
+    return {"images": len(images), "scenes": len({i.scene for i in images}),
+            "spp": sorted(int(s) for s in first), "models": results, "baselines": baselines}
+
+
+def _db(value: float | None) -> str:
+    return "-" if value is None else f"{value:.2f}"
+
+
+def markdown(result: dict[str, Any]) -> str:
+    """The table of validation.md: PSNR per spp and overall, each model's lead over OIDN."""
+    models, noisy, oidn = result["models"], result["baselines"]["noisy"], result["baselines"]["oidn"]
+    head = ["spp", "noisy", *models, "OIDN", *(f"{m} - OIDN" for m in models)]
+    lines = [f"Source: `{result['command']}`; {result['date']}; {result['images']} images of "
+             f"{result['scenes']} held-out scenes; PSNR dB (tonemapped), the network in float32 as the "
+             "trainer validates it; OIDN 2.5 colour-only on the same images.", "",
+             "| " + " | ".join(head) + " |", "|" + "---:|" * len(head)]
+
+    def row(label: str, pick) -> str:  # noqa: ANN001 - pick: (entry) -> PSNR or None
+        ours = [pick(m) for m in models.values()]
+        lead = ["-" if v is None or pick(oidn) is None else f"{v - pick(oidn):+.2f}" for v in ours]
+        return "| " + " | ".join([label, _db(pick(noisy)), *map(_db, ours), _db(pick(oidn)), *lead]) + " |"
+
+    for spp in result["spp"]:
+        lines.append(row(str(spp), lambda e, s=str(spp): e["per_spp"][s]["psnr"]))
+    lines.append(row("**mean**", lambda e: e["psnr"]))
+    return "\n".join(lines) + "\n"
+
+
+def build_parser() -> OneLineParser:
+    p = OneLineParser(prog="python -m benchmarks.validation", description=__doc__.splitlines()[0])
+    p.add_argument("--data", type=Path, action="append", required=True,
+                   help="dataset folder (repeatable): its 'val' scenes are scored")
+    p.add_argument("--models", type=name_list, default=("default",),
+                   help="comma-separated presets or checkpoints ('default': the shipped default)")
+    p.add_argument("--max-scenes", type=positive_int, help="only scenes with index below this")
+    p.add_argument("--no-oidn", action="store_true", help="skip the OIDN baseline")
+    p.add_argument("--out", type=Path, default=RESULTS)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    argv = sys.argv[1:] if argv is None else argv
+    args = parser.parse_args(argv)
+    try:
+        models = {name: resolve_model(None if name == "default" else name) for name in args.models}
+        record = run_record("benchmarks.validation", argv)
+        start = time.perf_counter()
+        result = score(models, args.data, args.max_scenes, oidn=not args.no_oidn)
+    except COMMAND_ERRORS as exc:
+        return parser.fail(exc)
+    result = {**finish_record(record, start), "data": [str(d) for d in args.data],
+              "max_scenes": args.max_scenes, **result}
+    args.out.mkdir(parents=True, exist_ok=True)
+    write_json_atomic(args.out / "validation.json", result)
+    table = markdown(result)
+    write_text_atomic(args.out / "validation.md", table)
+    print(table, end="")
+    print(f"wrote {args.out / 'validation.json'} and validation.md")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
