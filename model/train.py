@@ -138,6 +138,22 @@ def _check_data_config(data_config: dict[str, Any], ckpt: Checkpoint | None, con
                                f"({', '.join(f'{k}: {saved.get(k)!r} -> {data_config.get(k)!r}' for k in diff)})")
 
 
+def _check_scene_counts(data_config: dict[str, Any], ckpt: Checkpoint | None, config: TrainConfig) -> None:
+    """A resumed run must train on the scenes it started with: a dataset that has grown (or lost
+    scenes) since would change the run without a trace. Checkpoints without the record pass."""
+    saved = ckpt.header.get("data_config") if ckpt is not None else None
+    if not saved:
+        return
+    folders = (config.data, *config.extra_data)
+    for folder, old, new in zip(folders, [saved, *saved.get("extra_data", [])],
+                                [data_config, *data_config.get("extra_data", [])]):
+        if "scenes" in old and old["scenes"] != new["scenes"]:
+            raise DatasetError(f"{folder}: the run was trained on {old['scenes']['train']} train / "
+                               f"{old['scenes']['val']} val scenes, the dataset now gives {new['scenes']['train']} / "
+                               f"{new['scenes']['val']} (scenes added or removed since; start a new run, e.g. "
+                               "with --init-from, to train on them)")
+
+
 def _remove_temporaries(folder: Path) -> None:
     """Delete half-written files (``.tmp-*``) that a killed run left; never a finished file."""
     for leftover in folder.glob(f"{TMP_PREFIX}*"):
@@ -185,19 +201,21 @@ class _Run:
             root = Path(folder)
             this = read_dataset_config(root)
             _check_data_config(this, ckpt if k == 0 else None, config)
-            if k == 0:
-                data_config = dict(this)
-            else:
-                data_config.setdefault("extra_data", []).append({"path": folder, **this})
             records = [r for r in read_manifest(root) if not config.max_scenes or r.index < config.max_scenes]
             train_records = [r for r in records if r.split == "train"]
             if not train_records:
                 raise DatasetError(f"{root}: manifest has no scenes in split 'train'")
+            scenes = {"train": len(train_records), "val": len(records) - len(train_records)}
+            if k == 0:
+                data_config = {**this, "scenes": scenes}
+            else:
+                data_config.setdefault("extra_data", []).append({"path": folder, **this, "scenes": scenes})
             pairs += load_training_pairs(root, train_records, get_transfer(model.transfer), model.aux_inputs,
                                          converged=config.converged_pairs, noise=model.noise_input,
                                          index_offset=k * DATASET_ID_STRIDE, noise_radius=model.noise_radius)
             val_images += load_val_images(root, [r for r in records if r.split == "val"], model.aux_inputs,
                                           model.noise_input, index_offset=k * DATASET_ID_STRIDE)
+        _check_scene_counts(data_config, ckpt, config)
         return data_config, pairs, val_images
 
     def _open(self, resume: bool) -> Checkpoint | None:

@@ -164,6 +164,21 @@ def test_resume_refuses_a_different_dataset(dataset: Path, tmp_path: Path, capsy
     assert "dataset differs from the one this run was trained on (spp: [4, 16] -> [8])" in capsys.readouterr().err
 
 
+def test_resume_refuses_a_dataset_that_grew_or_shrank(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """The checkpoint records how many train/val scenes each dataset gave; a resumed run that would
+    see other scenes stops (it would no longer be the run its command describes)."""
+    data = write_synthetic_dataset(tmp_path / "ds", scenes=2, res=(32, 32), spp=(4,), val_scenes=(1,))
+    cfg = _config(tmp_path, model=TINY_MODEL, batch=4, val_every=0, progress=False)
+    run = tmp_path / "run"
+    assert main(["--data", str(data), "--out", str(run), "--config", cfg, "--steps", "1"]) == 0
+    assert read_checkpoint(run / "last.ckpt").header["data_config"]["scenes"] == {"train": 1, "val": 1}
+    write_synthetic_dataset(data, scenes=4, res=(32, 32), spp=(4,), val_scenes=(1,))  # two more train scenes
+    capsys.readouterr()
+    assert main(["--out", str(run), "--resume", "--steps", "2"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "trained on 1 train / 1 val scenes, the dataset now gives 3 / 1" in err[0]
+
+
 def test_aux_model_refuses_dataset_without_aux(dataset: Path, tmp_path: Path,
                                                capsys: pytest.CaptureFixture) -> None:
     assert main(["--data", str(dataset), "--out", str(tmp_path / "run"), "--preset", "fast", "--aux"]) == 1
@@ -243,6 +258,7 @@ def test_extra_data_trains_and_validates_on_both_datasets(noisy_dataset: Path, t
     meta = read_checkpoint(run / "last.ckpt").header
     assert meta["train_config"]["extra_data"] == [str(other)]
     assert meta["data_config"]["extra_data"][0]["path"] == str(other)
+    assert meta["data_config"]["extra_data"][0]["scenes"] == {"train": 1, "val": 1}
     assert main(["--out", str(run), "--resume", "--steps", "3", "--no-progress"]) == 0
     from model.train import DATASET_ID_STRIDE, _Run
     from model.train_config import TrainConfig
