@@ -38,6 +38,7 @@ from typing import Any
 import numpy as np
 
 from imaging.atomic_io import write_json_atomic
+from model.run_log import RunLog, validation_curve
 
 RESULTS = Path(__file__).resolve().parent / "results"
 UNET = ["--preset", "u-balanced", "--patch", "128", "--batch", "8", "--lr", "1e-3", "--lr-warmup", "100"]
@@ -61,20 +62,6 @@ def commands(data: str, runs: Path, cpu_minutes: float, max_scenes: int) -> list
               "--steps", "1000000", "--seed", "0", "--threads", "1", "--log-every", "20",
               "--ckpt-every", "100", "--no-progress"]
     return [" ".join(["train", "--out", str(runs / name), *common, *flags]) for name, flags in RUNS.items()]
-
-
-def _curve(run: Path) -> list[dict[str, Any]]:
-    """Validation records of a run, each with the optimisation CPU minutes at its step."""
-    records = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines() if line.strip()]
-    cpu = {r["step"]: r.get("cpu_s") for r in records if r["type"] == "train"}
-    curve = []
-    for r in records:
-        if r["type"] == "val" and cpu.get(r["step"]) is not None:
-            per_spp = {spp: v["psnr"]["ours"] for spp, v in r["per_spp"].items()}
-            curve.append({"step": r["step"], "cpu_min": cpu[r["step"]] / 60, "psnr": r["psnr"], "per_spp": per_spp,
-                          "noisy": {spp: v["psnr"]["noisy"] for spp, v in r["per_spp"].items()},
-                          "oidn": {spp: v["psnr"]["oidn"] for spp, v in r["per_spp"].items()}})
-    return curve
 
 
 def _at(curve: list[dict[str, Any]], minutes: float) -> dict[str, Any] | None:
@@ -119,7 +106,7 @@ def report(runs: Path) -> dict[str, Any]:
         if not (runs / name / "log.jsonl").exists():
             continue
         config = json.loads((runs / name / "train_config.json").read_text())
-        curve = _curve(runs / name)
+        curve = validation_curve(RunLog(runs / name / "log.jsonl").read())
         entry = {"config": config, "curve": curve, "budget_min": config.get("cpu_budget_s", 0) / 60}
         if config["model"].get("noise_input") and (runs / name / "last.ckpt").exists():
             entry["hidden_noise"] = hidden_noise_psnr(runs / name)

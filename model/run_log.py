@@ -47,6 +47,21 @@ class RunLog:
         write_text_atomic(self.path, "".join(json.dumps(r, allow_nan=False) + "\n" for r in kept))
 
 
+def validation_curve(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The validations of a run's log, each with the optimisation CPU minutes at its step (from the
+    train record of the same step; validations without one are left out): ``{"step", "cpu_min",
+    "psnr", "per_spp": {spp: ours}, "noisy": {spp: dB}, "oidn": {spp: dB or None}}``."""
+    cpu = {r["step"]: r.get("cpu_s") for r in records if r.get("type") == "train"}
+    curve = []
+    for r in records:
+        if r.get("type") == "val" and cpu.get(r["step"]) is not None:
+            per_spp = r.get("per_spp", {})
+            curve.append({"step": r["step"], "cpu_min": cpu[r["step"]] / 60, "psnr": r["psnr"],
+                          **{who: {spp: v["psnr"][name] for spp, v in per_spp.items()}
+                             for who, name in (("per_spp", "ours"), ("noisy", "noisy"), ("oidn", "oidn"))}})
+    return curve
+
+
 def plot_curves(records: list[dict[str, Any]], path: str | Path) -> None:
     """Plot training loss and validation PSNR per spp (ours vs noisy vs OIDN) to a PNG, atomically."""
     import matplotlib
