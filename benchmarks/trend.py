@@ -86,13 +86,17 @@ def _hours(f: dict[str, Any]) -> str:
     return f"> {FAR_HOURS:,}" if hours > FAR_HOURS else f"{hours:.1f}"
 
 
-def markdown(result: dict[str, Any]) -> str:
-    """trend.md: one row per run and spp."""
-    lines = [f"Source: `{result['command']}`; {result['date']}. Fit PSNR = a + b log2(CPU minutes) over the "
-             f"validations at >= {result['from']:g}x the last one's CPU time; b per doubling of CPU time; OIDN "
-             "colour-only on the same images; hours: where the line reaches OIDN (a straight line in log-time "
-             "flatters a flattening curve: a lower bound).", "",
-             "| run | spp | validations fitted | CPU-min | fit at end dB | dB per doubling | scatter dB | OIDN dB "
+def note(result: dict[str, Any]) -> str:
+    """What the table's figures are."""
+    offset = f", {result['offset_min']:g} CPU-minutes of earlier stages added" if result.get("offset_min") else ""
+    return (f"Fit PSNR = a + b log2(CPU minutes) over the validations at >= {result['from']:g}x the last one's CPU "
+            f"time{offset}; b per doubling of CPU time; OIDN colour-only on the same images; hours: where the line "
+            "reaches OIDN (a straight line in log-time flatters a flattening curve: a lower bound).")
+
+
+def table(result: dict[str, Any]) -> list[str]:
+    """One row per run and spp (``mean``: over the run's spp levels)."""
+    lines = ["| run | spp | validations fitted | CPU-min | fit at end dB | dB per doubling | scatter dB | OIDN dB "
              "| CPU-hours to OIDN |", "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for name, run in result["runs"].items():
         for label, f in [("mean", run["overall"]), *run["per_spp"].items()]:
@@ -101,9 +105,13 @@ def markdown(result: dict[str, Any]) -> str:
                 continue
             lines.append(f"| {name} | {label} | {f['points']} | {f['minutes'][0]:.0f}-{f['minutes'][1]:.0f} | "
                          f"{f['end_db']:.2f} | {f['db_per_doubling']:+.2f} | {f['scatter_db']:.2f} | "
-                         f"{_cell(f['target_db'], '.2f')} | "
-                         f"{_hours(f)} |")
-    return "\n".join(lines) + "\n"
+                         f"{_cell(f['target_db'], '.2f')} | {_hours(f)} |")
+    return lines
+
+
+def markdown(result: dict[str, Any]) -> str:
+    """trend.md: the command, :func:`note` and :func:`table`."""
+    return "\n".join([f"Source: `{result['command']}`; {result['date']}. {note(result)}", "", *table(result)]) + "\n"
 
 
 def _log_path(run: Path) -> Path:

@@ -15,14 +15,15 @@ from __future__ import annotations
 
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 from benchmarks.eval_scenes import RESULTS, finish_record, run_record
 from imaging.atomic_io import write_json_atomic, write_text_atomic
+from imaging.errors import DatasetError
 from imaging.usage import COMMAND_ERRORS, OneLineParser, name_list, positive_int
 from model.checkpoint import load_model
-from imaging.errors import DatasetError
 from model.dataset import ValImage, load_val_images, read_manifest
 from model.train import DATASET_ID_STRIDE
 from model.validate import Validator
@@ -72,24 +73,44 @@ def _db(value: float | None) -> str:
     return "-" if value is None else f"{value:.2f}"
 
 
-def markdown(result: dict[str, Any]) -> str:
-    """The table of validation.md: PSNR per spp and overall, each model's lead over OIDN."""
+def note(result: dict[str, Any]) -> str:
+    """What the table's figures are."""
+    return (f"{result['images']} images of {result['scenes']} held-out scenes at {result['spp'][0]}-"
+            f"{result['spp'][-1]} spp; PSNR dB (tonemapped) of the network in float32, as the trainer validates "
+            "it; OIDN 2.5 colour-only on the same images; the last columns: each model minus OIDN.")
+
+
+def table(result: dict[str, Any]) -> list[str]:
+    """PSNR per spp and overall of the noisy input, every model and OIDN, and each model's lead over OIDN."""
     models, noisy, oidn = result["models"], result["baselines"]["noisy"], result["baselines"]["oidn"]
     head = ["spp", "noisy", *models, "OIDN", *(f"{m} - OIDN" for m in models)]
-    lines = [f"Source: `{result['command']}`; {result['date']}; {result['images']} images of "
-             f"{result['scenes']} held-out scenes; PSNR dB (tonemapped), the network in float32 as the "
-             "trainer validates it; OIDN 2.5 colour-only on the same images.", "",
-             "| " + " | ".join(head) + " |", "|" + "---:|" * len(head)]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---:|" * len(head)]
 
-    def row(label: str, pick) -> str:  # noqa: ANN001 - pick: (entry) -> PSNR or None
+    def row(label: str, pick: Callable[[dict[str, Any]], float | None]) -> str:
         ours = [pick(m) for m in models.values()]
-        lead = ["-" if v is None or pick(oidn) is None else f"{v - pick(oidn):+.2f}" for v in ours]
-        return "| " + " | ".join([label, _db(pick(noisy)), *map(_db, ours), _db(pick(oidn)), *lead]) + " |"
+        target = pick(oidn)
+        lead = ["-" if v is None or target is None else f"{v - target:+.2f}" for v in ours]
+        return "| " + " | ".join([label, _db(pick(noisy)), *map(_db, ours), _db(target), *lead]) + " |"
 
     for spp in result["spp"]:
         lines.append(row(str(spp), lambda e, s=str(spp): e["per_spp"][s]["psnr"]))
     lines.append(row("**mean**", lambda e: e["psnr"]))
-    return "\n".join(lines) + "\n"
+    return lines
+
+
+def markdown(result: dict[str, Any]) -> str:
+    """validation.md: the command, :func:`note` and :func:`table`."""
+    return "\n".join([f"Source: `{result['command']}`; {result['date']}. {note(result)}", "", *table(result)]) + "\n"
+
+
+def model_specs(entries: tuple[str, ...]) -> dict[str, Path]:
+    """``--models`` entries -> {column name: checkpoint}: ``NAME=CHECKPOINT`` names a column, a preset
+    or path names itself, ``default`` is the shipped default."""
+    specs = {}
+    for entry in entries:
+        name, _, spec = entry.partition("=") if "=" in entry else (entry, "=", entry)
+        specs[name] = resolve_model(None if spec == "default" else spec)
+    return specs
 
 
 def build_parser() -> OneLineParser:
@@ -97,7 +118,7 @@ def build_parser() -> OneLineParser:
     p.add_argument("--data", type=Path, action="append", required=True,
                    help="dataset folder (repeatable): its 'val' scenes are scored")
     p.add_argument("--models", type=name_list, default=("default",),
-                   help="comma-separated presets or checkpoints ('default': the shipped default)")
+                   help="comma-separated presets, checkpoints or NAME=CHECKPOINT ('default': the shipped default)")
     p.add_argument("--max-scenes", type=positive_int, help="only scenes with index below this")
     p.add_argument("--no-oidn", action="store_true", help="skip the OIDN baseline")
     p.add_argument("--out", type=Path, default=RESULTS)
@@ -109,7 +130,7 @@ def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     args = parser.parse_args(argv)
     try:
-        models = {name: resolve_model(None if name == "default" else name) for name in args.models}
+        models = model_specs(args.models)
         record = run_record("benchmarks.validation", argv)
         start = time.perf_counter()
         result = score(models, args.data, args.max_scenes, oidn=not args.no_oidn)

@@ -66,11 +66,14 @@ def test_models_with_albedo_normal_inputs_are_refused(data: tuple[Path, Path], t
 def test_the_command_writes_json_and_table_and_fails_in_one_line(data: tuple[Path, Path], tmp_path: Path,
                                                                  capsys: pytest.CaptureFixture[str]) -> None:
     ckpt = _checkpoint(tmp_path / "id.ckpt")
-    assert main(["--data", str(data[0]), "--models", str(ckpt), "--no-oidn", "--out", str(tmp_path / "r")]) == 0
+    assert main(["--data", str(data[0]), "--models", f"mine={ckpt},{ckpt}", "--no-oidn",
+                 "--out", str(tmp_path / "r")]) == 0
     result = json.loads((tmp_path / "r" / "validation.json").read_text())
     assert result["command"].startswith("python -m benchmarks.validation --data") and result["images"] == 4
+    assert list(result["models"]) == ["mine", str(ckpt)]
     table = (tmp_path / "r" / "validation.md").read_text().splitlines()
-    assert table[2].startswith("| spp | noisy | ") and table[-1].startswith("| **mean** |")
+    assert table[2].startswith(f"| spp | noisy | mine | {ckpt} | OIDN | mine - OIDN |")
+    assert table[-1].startswith("| **mean** |")
     capsys.readouterr()
     assert main(["--data", str(tmp_path / "missing"), "--models", str(ckpt)]) == 1
     err = capsys.readouterr().err.strip().splitlines()
