@@ -308,6 +308,24 @@ def validation(results: Results) -> list[str]:
                      "OIDN relMSE"], rows, right=0)]
 
 
+def val_scenes(results: Results) -> list[str]:
+    """Checkpoints side by side with OIDN on the same held-out scenes of our datasets."""
+    from benchmarks.validation import note, table  # imports torch: only where this table is drawn
+
+    data = results.json("validation")
+    return [caption("python -m benchmarks.validation", "benchmarks/results/validation.json", data, note(data)), "",
+            *table(data)]
+
+
+def trend(results: Results) -> list[str]:
+    """Validation PSNR per doubling of CPU time late in each run, and the trend's CPU-hours to OIDN."""
+    from benchmarks.trend import note, table
+
+    data = results.json("trend")
+    return [caption("python -m benchmarks.trend", "benchmarks/results/trend.json", data, note(data)), "",
+            *table(data)]
+
+
 def ablations(results: Results) -> list[str]:
     """Each ablation run's final validation PSNR, overall and per spp."""
     data = results.json("train_ablations")
@@ -425,9 +443,9 @@ def denoise_tile_memory(results: Results) -> list[str]:
 
 
 TABLES: dict[str, Callable[[Results], list[str]]] = {
-    f.__name__: f for f in (scoreboard, scoreboard_scenes, noise_guard, noise_guard_settings, inference, science, multiscale_presets,
-                            roofline, budget, presets, validation, ablations, train_throughput, scaleout, extremes,
-                            render_memory, denoise_memory, denoise_tile_memory)}
+    f.__name__: f for f in (scoreboard, scoreboard_scenes, noise_guard, noise_guard_settings, inference, science,
+                            multiscale_presets, roofline, budget, presets, validation, val_scenes, trend, ablations,
+                            train_throughput, scaleout, extremes, render_memory, denoise_memory, denoise_tile_memory)}
 
 
 def pages(root: Path = ROOT) -> list[Path]:
