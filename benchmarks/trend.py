@@ -16,15 +16,13 @@ added to every point. Writes DIR/trend.json and trend.md (default DIR: benchmark
 """
 from __future__ import annotations
 
-import math
 import sys
-import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from benchmarks.eval_scenes import RESULTS
+from benchmarks.eval_scenes import RESULTS, run_record
 from imaging.atomic_io import write_json_atomic, write_text_atomic
 from imaging.usage import COMMAND_ERRORS, OneLineParser, int_list, positive_float
 from model.run_log import RunLog, validation_curve
@@ -59,24 +57,19 @@ def trend(curve: list[dict[str, Any]], spps: list[int], start: float = 0.5,
     if not curve:
         raise ValueError("no validations with CPU times in this log")
     points = [{**c, "cpu_min": c["cpu_min"] + offset_min} for c in curve]
-    last = points[-1]["cpu_min"]
-    window = [c for c in points if c["cpu_min"] >= start * last and c["cpu_min"] > 0]
+    final = points[-1]
+    window = [c for c in points if c["cpu_min"] >= start * final["cpu_min"] and c["cpu_min"] > 0]
 
     def oidn_mean(c: dict[str, Any]) -> float | None:
         values = list(c["oidn"].values())
         return None if any(v is None for v in values) or not values else float(np.mean(values))
 
-    final = points[-1]
     overall = fit([(c["cpu_min"], c["psnr"]) for c in window], oidn_mean(final))
     per_spp = {str(spp): fit([(c["cpu_min"], c["per_spp"][str(spp)]) for c in window
                               if c["per_spp"].get(str(spp)) is not None], final["oidn"].get(str(spp)))
                for spp in spps if str(spp) in final["per_spp"]}
-    return {"validations": len(curve), "last_step": final["step"], "last_cpu_min": last, "overall": overall,
+    return {"validations": len(curve), "last_step": final["step"], "last_cpu_min": final["cpu_min"], "overall": overall,
             "per_spp": per_spp}
-
-
-def _cell(value: float | None, fmt: str) -> str:
-    return "-" if value is None or (isinstance(value, float) and not math.isfinite(value)) else format(value, fmt)
 
 
 def _hours(f: dict[str, Any]) -> str:
@@ -105,7 +98,7 @@ def table(result: dict[str, Any]) -> list[str]:
                 continue
             lines.append(f"| {name} | {label} | {f['points']} | {f['minutes'][0]:.0f}-{f['minutes'][1]:.0f} | "
                          f"{f['end_db']:.2f} | {f['db_per_doubling']:+.2f} | {f['scatter_db']:.2f} | "
-                         f"{_cell(f['target_db'], '.2f')} | {_hours(f)} |")
+                         f"{'-' if f['target_db'] is None else format(f['target_db'], '.2f')} | {_hours(f)} |")
     return lines
 
 
@@ -150,13 +143,12 @@ def main(argv: list[str] | None = None) -> int:
                 raise ValueError(f"{path}: {exc}") from None
     except COMMAND_ERRORS as exc:
         return parser.fail(exc)
-    result = {"command": " ".join(["python -m benchmarks.trend", *argv]), "date": time.strftime("%Y-%m-%d %H:%M"),
-              "from": args.start, "offset_min": args.offset_min, "runs": runs}
+    result = {**run_record("benchmarks.trend", argv), "from": args.start, "offset_min": args.offset_min, "runs": runs}
     args.out.mkdir(parents=True, exist_ok=True)
     write_json_atomic(args.out / "trend.json", result)
-    table = markdown(result)
-    write_text_atomic(args.out / "trend.md", table)
-    print(table, end="")
+    text = markdown(result)
+    write_text_atomic(args.out / "trend.md", text)
+    print(text, end="")
     return 0
 
 

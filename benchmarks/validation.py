@@ -140,9 +140,9 @@ def main(argv: list[str] | None = None) -> int:
               "max_scenes": args.max_scenes, **result}
     args.out.mkdir(parents=True, exist_ok=True)
     write_json_atomic(args.out / "validation.json", result)
-    table = markdown(result)
-    write_text_atomic(args.out / "validation.md", table)
-    print(table, end="")
+    text = markdown(result)
+    write_text_atomic(args.out / "validation.md", text)
+    print(text, end="")
     print(f"wrote {args.out / 'validation.json'} and validation.md")
     return 0
 

@@ -197,28 +197,29 @@ class _Run:
         pairs: list[TrainingPair] = []
         val_images: list[ValImage] = []
         data_config: dict[str, Any] = {}
-        chosen = []  # (root, its records) of every dataset, checked before any image is read
+        chosen = []  # (root, train records, val records) of every dataset, checked before any image is read
         for k, folder in enumerate((config.data, *config.extra_data)):
             root = Path(folder)
             this = read_dataset_config(root)
             _check_data_config(this, ckpt if k == 0 else None, config)
             records = [r for r in read_manifest(root) if not config.max_scenes or r.index < config.max_scenes]
-            train = sum(r.split == "train" for r in records)
+            train = [r for r in records if r.split == "train"]
+            val = [r for r in records if r.split == "val"]
             if not train:
                 raise DatasetError(f"{root}: manifest has no scenes in split 'train'")
-            scenes = {"train": train, "val": len(records) - train}
+            scenes = {"train": len(train), "val": len(val)}
             if k == 0:
                 data_config = {**this, "scenes": scenes}
             else:
                 data_config.setdefault("extra_data", []).append({"path": folder, **this, "scenes": scenes})
-            chosen.append((root, records))
+            chosen.append((root, train, val))
         _check_scene_counts(data_config, ckpt, config)
-        for k, (root, records) in enumerate(chosen):
-            pairs += load_training_pairs(root, [r for r in records if r.split == "train"], get_transfer(model.transfer),
-                                         model.aux_inputs, converged=config.converged_pairs, noise=model.noise_input,
+        for k, (root, train, val) in enumerate(chosen):
+            pairs += load_training_pairs(root, train, get_transfer(model.transfer), model.aux_inputs,
+                                         converged=config.converged_pairs, noise=model.noise_input,
                                          index_offset=k * DATASET_ID_STRIDE, noise_radius=model.noise_radius)
-            val_images += load_val_images(root, [r for r in records if r.split == "val"], model.aux_inputs,
-                                          model.noise_input, index_offset=k * DATASET_ID_STRIDE)
+            val_images += load_val_images(root, val, model.aux_inputs, model.noise_input,
+                                          index_offset=k * DATASET_ID_STRIDE)
         return data_config, pairs, val_images
 
     def _open(self, resume: bool) -> Checkpoint | None:
