@@ -36,6 +36,7 @@ _FLAGS = {  # argparse dest -> TrainConfig field
     "lr_decay_every": "lr_decay_every", "converged_pairs": "converged_pairs",
     "lr_warmup": "lr_warmup", "lr_cosine_steps": "lr_cosine_steps", "lr_final": "lr_final",
     "noise_dropout": "noise_dropout", "gradient_weight": "gradient_weight", "max_scenes": "max_scenes",
+    "log_loss_eps": "log_loss_eps",
 }
 _MODEL_FLAGS = ("arch", "transfer", "output", "aux_inputs", "noise_input", "noise_radius", "levels", "layers",
                 "growth", "init_features")
@@ -85,6 +86,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--lr-final", type=float, help="LR at the end of the cosine, as a share of --lr (0.01)")
     p.add_argument("--gradient-weight", type=float,
                    help="share of the gradient L1 in the loss (default 0.1, the paper's; 0 = plain L1)")
+    p.add_argument("--log-loss-eps", type=float,
+                   help="minimise the mean over patches of log(patch loss + EPS) instead of the mean loss, "
+                        "so clean high-spp patches count per relative gain (default 0 = off, the paper's)")
     p.add_argument("--max-scenes", type=int, help="use only the datasets' scenes with index below this")
     p.add_argument("--extra-data", action="append", metavar="DIR",
                    help="another dataset folder to train and validate on (repeatable)")

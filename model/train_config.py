@@ -50,6 +50,8 @@ class TrainConfig:
     ``noise_dropout``: for a model with ``noise_input``, the share of patches whose noise
     channels are zeroed (marked unknown), so that it also works on images without a variance.
     ``gradient_weight``: share of the gradient L1 in the loss (the paper's 0.1; 0: plain L1).
+    ``log_loss_eps`` > 0: minimise the mean over patches of log(patch loss + eps) instead of the
+    mean loss (:mod:`model.loss`: every spp level counts per relative gain, as mean PSNR does).
     ``max_scenes`` > 0: train and validate on the scenes with index below it only (the dataset
     may hold more, e.g. while it is still being generated), so a run's data is fixed; it applies
     to every dataset of the run. ``extra_data``: further dataset folders trained and validated
@@ -74,6 +76,7 @@ class TrainConfig:
     lr_final: float = 0.01
     noise_dropout: float = 0.25
     gradient_weight: float = 0.1
+    log_loss_eps: float = 0.0
     max_scenes: int = 0
     extra_data: tuple[str, ...] = ()
     cpu_budget_s: float = 0.0
@@ -119,6 +122,8 @@ class TrainConfig:
             raise ConfigError(f"cpu_budget_s must be >= 0, got {self.cpu_budget_s!r}")
         if not (isinstance(self.gradient_weight, (int, float)) and 0 <= self.gradient_weight <= 1):
             raise ConfigError(f"gradient_weight must be in [0, 1], got {self.gradient_weight!r}")
+        if not (isinstance(self.log_loss_eps, (int, float)) and 0 <= self.log_loss_eps <= 1):
+            raise ConfigError(f"log_loss_eps must be in [0, 1], got {self.log_loss_eps!r}")
         if not (isinstance(self.noise_dropout, (int, float)) and 0 <= self.noise_dropout <= 1):
             raise ConfigError(f"noise_dropout must be in [0, 1], got {self.noise_dropout!r}")
         if self.micro_batch is not None and not (
