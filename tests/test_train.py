@@ -61,6 +61,20 @@ def test_end_to_end_small_preset(dataset: Path, tmp_path: Path, capsys: pytest.C
     assert saved["model"] == config.to_dict() and saved["steps"] == 12
 
 
+def test_log_loss_trains_and_is_recorded(dataset: Path, tmp_path: Path) -> None:
+    # The log loss: log(patch loss + eps) < 0 for patches far better than 1; the run learns
+    # (validation above the noisy input) and records the choice in its checkpoint.
+    run = tmp_path / "run"
+    cfg = _config(tmp_path, model=TINY_MODEL, batch=4, val_every=20, progress=False, log_every=10)
+    assert main(["--data", str(dataset), "--out", str(run), "--config", cfg, "--steps", "40",
+                 "--lr", "0.003", "--log-loss-eps", "0.001"]) == 0
+    log = _log(run)
+    assert all(r["loss"] < 0 for r in log if r["type"] == "train")
+    val = [r for r in log if r["type"] == "val"][-1]
+    assert val["per_spp"]["4"]["psnr"]["ours"] > val["per_spp"]["4"]["psnr"]["noisy"]
+    assert read_checkpoint(run / "last.ckpt").header["train_config"]["log_loss_eps"] == 0.001
+
+
 def test_resume_continues_exactly(dataset: Path, tmp_path: Path) -> None:
     cfg = _config(tmp_path, model=TINY_MODEL, batch=4, lr_decay_every=3, log_every=2, ckpt_every=2,
                   val_every=0, progress=False)
@@ -118,6 +132,7 @@ def test_nan_losses_stop_training_without_poisoning(dataset: Path, tmp_path: Pat
     (["--out", "{tmp}/r", "--resume", "--preset", "fast"], "--preset cannot be combined with --resume"),
     (["--data", "{data}", "--out", "{tmp}/no/such/r"], "output parent folder does not exist"),
     (["--data", "{data}", "--out", "{tmp}/r", "--steps", "0"], "steps must be a positive integer"),
+    (["--data", "{data}", "--out", "{tmp}/r", "--log-loss-eps", "-1"], "log_loss_eps must be in [0, 1]"),
     (["--data", "{data}", "--out", "{tmp}/r", "--config", "{tmp}/nope.json"], "nope.json: cannot read config"),
 ])
 def test_cli_errors_one_line(dataset: Path, tmp_path: Path, capsys: pytest.CaptureFixture,
