@@ -22,8 +22,8 @@ from typing import Any
 
 import numpy as np
 
-from benchmarks.eval_scenes import EVAL_DIR, RESULTS, EvalScene, eval_scenes, finish_record, run_record
-from imaging.atomic_io import write_json_atomic, write_text_atomic
+from benchmarks.eval_scenes import EVAL_DIR, RESULTS, EvalScene, eval_scenes, finish_record, run_record, \
+    save_result
 from imaging.usage import COMMAND_ERRORS, OneLineParser, name_list
 from pipeline.run import RunConfig, run
 
@@ -83,12 +83,10 @@ def main(argv: list[str] | None = None) -> int:
         return p.fail(exc)
     summary = summarize(rows, budgets)
     result = {**finish_record(record, start), "tolerance": TOLERANCE, "summary": summary, "rows": rows}
-    args.out.mkdir(parents=True, exist_ok=True)
-    write_json_atomic(args.out / "budget.json", result)
     table = markdown(rows, summary)
-    write_text_atomic(args.out / "budget.md", table)
+    path = save_result(args.out, "budget", result, table)
     print(table)
-    print(f"{summary['within']}/{summary['runs']} runs within 20% of the budget; wrote {args.out / 'budget.json'}")
+    print(f"{summary['within']}/{summary['runs']} runs within 20% of the budget; wrote {path}")
     return 0
 
 

@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from imaging.atomic_io import write_json_atomic, write_text_atomic
 from imaging.errors import DenoiserError
 from imaging.exr import read_exr
 from pipeline.evaluation import RenderSettings
@@ -83,6 +84,15 @@ def run_record(module: str, argv: Sequence[str]) -> dict[str, Any]:
     and the machine's cores and 1-minute load average; :func:`finish_record` adds the load at the end."""
     return {"command": shlex.join(["python", "-m", module, *argv]), "date": time.strftime("%Y-%m-%d %H:%M"),
             "machine": {"cores": len(os.sched_getaffinity(0)), "load_before": os.getloadavg()[0]}}
+
+
+def save_result(out: Path, name: str, result: dict[str, Any], markdown: str) -> Path:
+    """Write ``OUT/NAME.json`` (the result) and ``OUT/NAME.md`` (its table) atomically, making
+    ``out`` if needed; returns the JSON's path."""
+    out.mkdir(parents=True, exist_ok=True)
+    write_json_atomic(out / f"{name}.json", result)
+    write_text_atomic(out / f"{name}.md", markdown)
+    return out / f"{name}.json"
 
 
 def finish_record(record: dict[str, Any], started: float) -> dict[str, Any]:

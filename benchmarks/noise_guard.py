@@ -36,8 +36,7 @@ import numpy as np
 from tqdm import tqdm
 
 from benchmarks.eval_scenes import (CEILING_DB, RESULTS, ROOT, SEED, EvalScene, eval_scenes, finish_record,
-                                    run_record)
-from imaging.atomic_io import write_json_atomic, write_text_atomic
+                                    run_record, save_result)
 from imaging.metrics import psnr
 from imaging.usage import COMMAND_ERRORS, OneLineParser, name_list
 from pipeline.denoise import Denoiser
@@ -165,9 +164,7 @@ def main(argv: list[str] | None = None) -> int:
     text = report(result)
     print(text)
     if not args.quick:
-        RESULTS.mkdir(exist_ok=True)
-        write_json_atomic(RESULTS / "noise_guard.json", result)
-        write_text_atomic(RESULTS / "noise_guard.md", text)
+        save_result(RESULTS, "noise_guard", result, text)
     return 0
 
 

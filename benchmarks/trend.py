@@ -22,8 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from benchmarks.eval_scenes import RESULTS, run_record
-from imaging.atomic_io import write_json_atomic, write_text_atomic
+from benchmarks.eval_scenes import RESULTS, run_record, save_result
 from imaging.usage import COMMAND_ERRORS, OneLineParser, int_list, positive_float
 from model.run_log import RunLog, validation_curve
 
@@ -144,10 +143,8 @@ def main(argv: list[str] | None = None) -> int:
     except COMMAND_ERRORS as exc:
         return parser.fail(exc)
     result = {**run_record("benchmarks.trend", argv), "from": args.start, "offset_min": args.offset_min, "runs": runs}
-    args.out.mkdir(parents=True, exist_ok=True)
-    write_json_atomic(args.out / "trend.json", result)
     text = markdown(result)
-    write_text_atomic(args.out / "trend.md", text)
+    save_result(args.out, "trend", result, text)
     print(text, end="")
     return 0
 

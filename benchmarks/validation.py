@@ -19,8 +19,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from benchmarks.eval_scenes import RESULTS, finish_record, run_record
-from imaging.atomic_io import write_json_atomic, write_text_atomic
+from benchmarks.eval_scenes import RESULTS, finish_record, run_record, save_result
 from imaging.errors import DatasetError
 from imaging.usage import COMMAND_ERRORS, OneLineParser, name_list, positive_int
 from model.checkpoint import load_model
@@ -138,12 +137,10 @@ def main(argv: list[str] | None = None) -> int:
         return parser.fail(exc)
     result = {**finish_record(record, start), "data": [str(d) for d in args.data],
               "max_scenes": args.max_scenes, **result}
-    args.out.mkdir(parents=True, exist_ok=True)
-    write_json_atomic(args.out / "validation.json", result)
     text = markdown(result)
-    write_text_atomic(args.out / "validation.md", text)
+    path = save_result(args.out, "validation", result, text)
     print(text, end="")
-    print(f"wrote {args.out / 'validation.json'} and validation.md")
+    print(f"wrote {path} and validation.md")
     return 0
 
 
