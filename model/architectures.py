@@ -103,4 +103,7 @@ def _unet_live_channels(config: ModelConfig) -> float:
     buffers = sum(c * s for c, s in zip(kept, share))
     temporaries = max(max(b * s for b, s in zip(busy, share)),
                       (kept[0] + 24) * share[0] + 6)  # the tail: BN-ReLU copy, two 12-channel convs, output
-    return max(inputs, base + buffers + temporaries)
+    # the head: the output, its input (output and network input, concatenated and a channels_last
+    # copy), its hidden channels and its output, beside the network input and the output
+    head = cimg + config.in_channels + 3 + 2 * (3 + config.in_channels) + config.head + 3 if config.head else 0
+    return max(inputs, base + buffers + temporaries, head)

@@ -39,7 +39,7 @@ _FLAGS = {  # argparse dest -> TrainConfig field
     "log_loss_eps": "log_loss_eps",
 }
 _MODEL_FLAGS = ("arch", "transfer", "output", "aux_inputs", "noise_input", "noise_radius", "levels", "layers",
-                "growth", "init_features")
+                "growth", "init_features", "head")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -55,6 +55,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--preset", choices=sorted(PRESETS), help="model size preset (default paper)")
     p.add_argument("--arch", choices=list(ARCHS))
     p.add_argument("--levels", type=int, help="multi-scale archs: resolutions below the half-resolution stem")
+    p.add_argument("--head", type=int,
+                   help="multi-scale archs: channels of a full-resolution refinement head (0: none)")
     p.add_argument("--layers", type=int, help="dense layers (flat: in the block; multi-scale: per block)")
     p.add_argument("--growth", type=int, help="growth rate k")
     p.add_argument("--width", dest="init_features", type=int, help="channels of the first conv / stem")

@@ -53,7 +53,9 @@ class ModelConfig:
     number of resolutions below the half-resolution stem (the image is processed at 1/2 .. 1/2^(levels+1));
     0 for the flat archs. For the multi-scale archs ``layers`` counts the layers of each of the
     2*levels+1 blocks, ``init_features`` is the stem's width and ``growth`` the growth rate at
-    half resolution (:mod:`model.unet` says how widths grow with depth).
+    half resolution (:mod:`model.unet` says how widths grow with depth). ``head``: multi-scale
+    archs only, channels of a full-resolution refinement head after the encoder/decoder (two 3x3
+    convs on its output and the network input, :mod:`model.unet`); 0 for none.
     Defaults: the paper's sizes, log transfer, residual output (the network predicts only the
     correction, which starts near the identity).
     """
@@ -69,6 +71,7 @@ class ModelConfig:
     levels: int = 0
     noise_input: bool = False
     noise_radius: int = 0
+    head: int = 0
 
     def __post_init__(self) -> None:
         if self.arch not in ARCHS:
@@ -93,6 +96,10 @@ class ModelConfig:
             raise ConfigError(f"model levels must be in 1..{MAX_LEVELS} for {self.arch}, got {self.levels}")
         if self.arch in FLAT_ARCHS and self.levels != 0:
             raise ConfigError(f"model levels must be 0 for the flat {self.arch}, got {self.levels}")
+        if not isinstance(self.head, int) or isinstance(self.head, bool) or not 0 <= self.head <= 256:
+            raise ConfigError(f"model head must be an integer in 0..256, got {self.head!r}")
+        if self.arch in FLAT_ARCHS and self.head:
+            raise ConfigError(f"model head must be 0 for the flat {self.arch} (it already runs at full resolution)")
 
     @property
     def multiscale(self) -> bool:

@@ -8,7 +8,9 @@ from the first step (the tail weights on their outputs receive gradient), while 
 eval mode computes exactly the source's output — training starts from the source's quality instead
 of from the identity. The residual model's zero-initialised last conv works the same way.
 A checkpoint of the very same model config (e.g. a multi-scale net) is copied as it is: a new run
-(fresh optimiser, schedule and step count) that starts from trained weights.
+(fresh optimiser, schedule and step count) that starts from trained weights. A multi-scale net
+without the full-resolution head (:func:`model.unet.make_head`) is copied into the same net with
+one: the head's last conv is zero, so the grown net, too, starts by computing the source's output.
 """
 from __future__ import annotations
 
@@ -43,8 +45,12 @@ def grow_model(target: torch.nn.Module, source: torch.nn.Module) -> None:
     A source with the very same config (any architecture; the noise input's averaging window may
     differ, the weights do not depend on it) is copied whole: a warm start.
     """
-    if dataclasses.replace(source.config, noise_radius=target.config.noise_radius) == target.config:
+    same = dataclasses.replace(source.config, noise_radius=target.config.noise_radius)
+    if same == target.config:
         target.load_state_dict(source.state_dict(), strict=True)
+        return
+    if target.config.multiscale and not same.head and dataclasses.replace(same, head=target.config.head) == target.config:
+        target.load_state_dict(source.state_dict(), strict=False)  # all but the new head
         return
     check_growable(source.config, target.config)
     src_layers = len(source.body.layers)

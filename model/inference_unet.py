@@ -18,6 +18,7 @@ encoder/decoder shape allows:
 * **channels_last** activations and weights.
 * **One scratch for the clamps** (:func:`model.inference_net.scratch_view`): every clamp of a
   forward pass, and the tail's affine map, write into one flat buffer sized for the largest.
+* **The full-resolution head** (``head`` > 0) runs as two plain convs on channels_last input.
 * **Optionally bfloat16** (``dtype``, :mod:`model.precision`): weights and activations; the input
   is built and the residual added in float32.
 
@@ -119,6 +120,9 @@ class InferenceUNet(nn.Module):
             self.tail_pre = _AffineReLU(scale, shift)
             self.tail = _Conv(tail_weight, None, relu=False)
             self.skip = _Conv(model.skip.weight.detach().clone(), model.skip.bias.detach().clone(), relu=False)
+            self.head = None if model.head is None else nn.Sequential(
+                *(_Conv(conv.weight.detach().clone(), conv.bias.detach().clone(), relu=i == 0)
+                  for i, conv in enumerate((model.head[0], model.head[2]))))
         # per level, the channels of its widest clamp input (level i runs its encoder and decoder
         # blocks' clamps, its transition down's and, for i > 0, the transition up from it to level
         # i-1; level n the bottom block's; level 0 also the tail's affine map): the scratch's size
@@ -168,7 +172,8 @@ class InferenceUNet(nn.Module):
 
     def forward(self, image: torch.Tensor) -> torch.Tensor:
         h, w = image.shape[-2:]
-        x = pad_to_alignment(network_input(image), alignment(self.config))
+        net_in = network_input(image)
+        x = pad_to_alignment(net_in, alignment(self.config))
         raw = F.pixel_unshuffle(x, 2).contiguous(memory_format=torch.channels_last).to(self.dtype)
         x = self.stem(raw)
         scratch = torch.empty(self.scratch_elements(x.shape[0], *x.shape[-2:]), dtype=self.dtype)
@@ -184,4 +189,8 @@ class InferenceUNet(nn.Module):
         y = self.tail(self.tail_pre(x, scratch))
         y += self.skip(raw)
         out = F.pixel_shuffle(y.float(), 2)[..., :h, :w]
-        return out + image[:, :3] if self.config.output == "residual" else out
+        out = out + image[:, :3] if self.config.output == "residual" else out
+        if self.head is None:
+            return out
+        both = torch.cat([out, net_in], dim=1).contiguous(memory_format=torch.channels_last)
+        return out + self.head(both.to(self.dtype)).float()

@@ -13,6 +13,9 @@ Tiramisu") and of OIDN's U-Net, built so that nothing heavy runs at full resolut
     -> BN-ReLU-conv3x3 of the last block + conv3x3 of the unshuffled input (so that every
        pixel's own value reaches the output) -> 12 channels -> pixel-shuffle 2 -> RGB (H x W)
     (+ the input RGB for ``output="residual"``)
+    -> with ``head`` > 0, a full-resolution refinement: conv3x3 of [that output, the network input]
+       -> ``head`` channels -> ReLU -> conv3x3 -> 3, added to it (the only nonlinearity at full
+       resolution; its last conv starts at zero, so it starts as the network without it)
 
 A *block* is ``layers`` of the paper's bottleneck layers (BN-ReLU-Conv1x1-BN-ReLU-Conv3x3), their
 outputs concatenated (``dense_unet``), or, for the science table's plain network
@@ -142,11 +145,12 @@ class MultiScaleDenoiser(nn.Module):
             nn.init.zeros_(self.tail.weight)
             nn.init.zeros_(self.skip.weight)
         nn.init.zeros_(self.skip.bias)
+        self.head = make_head(config)
 
     def forward(self, image: torch.Tensor) -> torch.Tensor:
         h, w = image.shape[-2:]
-        x = pad_to_alignment(network_input(image), alignment(self.config))
-        raw = F.pixel_unshuffle(x, 2)
+        net_in = network_input(image)
+        raw = F.pixel_unshuffle(pad_to_alignment(net_in, alignment(self.config)), 2)
         x = self.stem(raw)
         skips = []
         for enc, down in zip(self.enc, self.down):
@@ -158,7 +162,22 @@ class MultiScaleDenoiser(nn.Module):
             x = dec(torch.cat([F.interpolate(up(x), scale_factor=2.0, mode="nearest"), skips.pop()], dim=1))
         x = self.tail(F.relu(self.tail_bn(x))) + self.skip(raw)
         out = F.pixel_shuffle(x, 2)[..., :h, :w]
-        return out + image[:, :3] if self.config.output == "residual" else out
+        out = out + image[:, :3] if self.config.output == "residual" else out
+        return out if self.head is None else out + self.head(torch.cat([out, net_in], dim=1))
+
+
+def make_head(config: ModelConfig) -> nn.Sequential | None:
+    """The full-resolution refinement head of ``config`` (None if ``config.head`` is 0):
+    conv3x3 (3 + in_channels -> head) -> ReLU -> conv3x3 (head -> 3), the last one zero."""
+    if not config.head:
+        return None
+    head = nn.Sequential(nn.Conv2d(3 + config.in_channels, config.head, 3, padding=1), nn.ReLU(inplace=True),
+                         nn.Conv2d(config.head, 3, 3, padding=1))
+    init_weights(head)
+    for p in head.parameters():
+        if p.dim() == 1 or p is head[2].weight:
+            nn.init.zeros_(p)
+    return head
 
 
 def pad_to_alignment(x: torch.Tensor, align: int) -> torch.Tensor:
@@ -190,7 +209,8 @@ def receptive_radius(config: ModelConfig) -> int:
         jump //= 2
         r += jump  # nearest upsampling cell
         r += config.layers * jump
-    return r + jump + 1  # tail / skip conv3x3 at half resolution, pixel-shuffle cell
+    r += jump + 1  # tail / skip conv3x3 at half resolution, pixel-shuffle cell
+    return r + 2 if config.head else r  # the head's two conv3x3 at full resolution
 
 
 def conv_macs_per_pixel(model: nn.Module, height: int = 64, width: int = 64) -> float:
@@ -251,7 +271,8 @@ def macs_per_pixel(config: ModelConfig, plain_scale: float | None = None, pool_f
         total += below * w[i] * share[i + 1]
         macs, below = block(w[i] + enc_out[i], i)
         total += macs
-    return total + 9 * (below + cin4) * 12 * share[0]
+    total += 9 * (below + cin4) * 12 * share[0]
+    return total + 9 * (3 + config.in_channels + 3) * config.head
 
 
 @functools.lru_cache(maxsize=64)

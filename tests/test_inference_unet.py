@@ -23,7 +23,8 @@ NET_ATOL = 2e-5
     dataclasses.replace(TINY, levels=3, layers=2, noise_input=True),
     dataclasses.replace(TINY, arch="plain_unet", noise_input=True),
     dataclasses.replace(TINY, output="direct", aux_inputs=True, noise_input=True),
-], ids=["dense", "dense-noise", "plain-noise", "direct-aux-noise"])
+    dataclasses.replace(TINY, levels=3, noise_input=True, head=6),
+], ids=["dense", "dense-noise", "plain-noise", "direct-aux-noise", "dense-noise-head"])
 @pytest.mark.parametrize("positive", [False, True], ids=["any-bn-scale", "positive-bn-scales"])
 def test_folded_unet_equals_the_training_module(config: ModelConfig, positive: bool) -> None:
     """Both ways of the clamp: BN scales of both signs (clamp) and all positive (one maximum)."""

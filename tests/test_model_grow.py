@@ -114,3 +114,20 @@ def test_same_config_is_a_warm_start_for_any_architecture() -> None:
         assert torch.equal(target.eval()(x), source(x))
     with pytest.raises(ConfigError, match="only densenet"):
         grow_model(build_model(dataclasses.replace(source.config, layers=2)), source)
+
+
+def test_a_multiscale_net_grows_a_head_that_starts_at_zero_and_learns() -> None:
+    import dataclasses
+
+    from tests.test_model_unet import TINY, trained_like
+
+    source = trained_like(TINY)
+    target = build_model(dataclasses.replace(TINY, head=4))
+    grow_model(target, source)
+    x = torch.rand(1, 3, 20, 24)
+    with torch.no_grad():
+        assert torch.equal(target.eval()(x), source(x))  # the head's last conv is zero
+    target.train()(x).square().mean().backward()
+    assert target.head[2].weight.grad.abs().sum() > 0  # and it learns from the first step
+    with pytest.raises(ConfigError, match="only densenet"):  # a head is never dropped
+        grow_model(build_model(TINY), target)

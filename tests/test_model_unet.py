@@ -30,6 +30,10 @@ def trained_like(config: ModelConfig, seed: int = 0, positive: bool = False) -> 
                 m.bias.uniform_(-0.3, 0.3)
         torch.nn.init.normal_(model.tail.weight, std=0.05)
         torch.nn.init.normal_(model.skip.weight, std=0.05)
+        if model.head is not None:
+            torch.nn.init.normal_(model.head[2].weight, std=0.05)
+            torch.nn.init.uniform_(model.head[0].bias, -0.2, 0.2)
+            torch.nn.init.uniform_(model.head[2].bias, -0.02, 0.02)
     return model.eval()
 
 
@@ -47,9 +51,9 @@ def test_every_multiscale_preset_keeps_the_shape(name: str) -> None:
 
 
 @pytest.mark.parametrize("h,w", [(1, 1), (1, 9), (9, 1), (5, 7), (16, 16), (31, 17)])
-@pytest.mark.parametrize("arch", ["dense_unet", "plain_unet"])
-def test_any_size_and_residual_identity_at_init(arch: str, h: int, w: int) -> None:
-    config = dataclasses.replace(TINY, arch=arch)
+@pytest.mark.parametrize("arch,head", [("dense_unet", 0), ("plain_unet", 0), ("dense_unet", 5)])
+def test_any_size_and_residual_identity_at_init(arch: str, head: int, h: int, w: int) -> None:
+    config = dataclasses.replace(TINY, arch=arch, head=head)
     model = build_model(config).eval()
     x = torch.rand(2, 3, h, w)
     with torch.no_grad():
@@ -69,8 +73,9 @@ def test_padding_replicates_the_edges() -> None:
     assert pad_to_alignment(x[..., :1, :1], 8).eq(0.0).all()  # 1x1 -> 8x8 of its value
 
 
-def test_receptive_radius_bounds_the_influence_of_a_pixel() -> None:
-    config = dataclasses.replace(TINY, layers=1, levels=2)
+@pytest.mark.parametrize("head", [0, 4])
+def test_receptive_radius_bounds_the_influence_of_a_pixel(head: int) -> None:
+    config = dataclasses.replace(TINY, layers=1, levels=2, head=head)
     model = trained_like(config)
     r = receptive_radius(config)
     size = 2 * r + 40
@@ -96,6 +101,13 @@ def test_tiled_inference_on_the_alignment_grid_equals_whole_image() -> None:
     whole = denoise_image(model, color, core=4096, variance=variance)
     tiled = denoise_image(model, color, core=alignment(config) * 6, variance=variance)
     np.testing.assert_allclose(tiled, whole, rtol=1e-5, atol=1e-6)
+
+
+def test_head_is_validated() -> None:
+    with pytest.raises(ConfigError, match="head must be 0 for the flat"):
+        ModelConfig(head=8)
+    with pytest.raises(ConfigError, match="head must be an integer"):
+        dataclasses.replace(TINY, head=-1)
 
 
 def test_levels_are_validated() -> None:
@@ -126,11 +138,27 @@ def test_nothing_heavy_runs_at_full_resolution() -> None:
     assert max(sizes) == 32 and min(sizes) == 4
 
 
-@pytest.mark.parametrize("arch", ["dense_unet", "plain_unet"])
-def test_macs_counted_from_the_plan_match_the_convolutions_run(arch: str) -> None:
+def test_the_head_is_the_only_full_resolution_work() -> None:
+    """With a head, exactly its two convolutions run at full resolution, on the RGB estimate
+    and the network input."""
+    config = dataclasses.replace(TINY, levels=3, head=6)
+    model = build_model(config).eval()
+    full = []
+    hooks = [m.register_forward_hook(lambda m, i, o: full.append((i[0].shape[1], o.shape[1])) if o.shape[-1] == 64
+                                     else None)
+             for m in model.modules() if isinstance(m, torch.nn.Conv2d)]
+    with torch.no_grad():
+        model(torch.rand(1, 3, 64, 64))
+    for h in hooks:
+        h.remove()
+    assert full == [(3 + config.in_channels, 6), (6, 3)]
+
+
+@pytest.mark.parametrize("arch,head", [("dense_unet", 0), ("plain_unet", 0), ("dense_unet", 7)])
+def test_macs_counted_from_the_plan_match_the_convolutions_run(arch: str, head: int) -> None:
     from model.unet import macs_per_pixel
 
-    config = dataclasses.replace(TINY, arch=arch, levels=3, layers=2, noise_input=True)
+    config = dataclasses.replace(TINY, arch=arch, levels=3, layers=2, noise_input=True, head=head)
     measured = conv_macs_per_pixel(build_model(config), 64, 64)
     assert macs_per_pixel(config, pool_first=False) == pytest.approx(measured, rel=1e-9)
     assert macs_per_pixel(config) < measured  # the folded net pools before the transition's conv

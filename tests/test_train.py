@@ -239,16 +239,17 @@ def noisy_dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def test_end_to_end_multiscale_with_noise_input(noisy_dataset: Path, tmp_path: Path) -> None:
-    """A tiny dense U-Net with noise input trains, validates with the variance images, resumes,
-    and its checkpoint rebuilds the model; a noise model refuses data without variance."""
+    """A tiny dense U-Net with noise input and a full-resolution head trains, validates with the
+    variance images, resumes, and its checkpoint rebuilds the model; a noise model refuses data
+    without variance."""
     run = tmp_path / "run"
-    flags = ["--arch", "dense_unet", "--levels", "2", "--layers", "1", "--growth", "4", "--width", "8",
+    flags = ["--arch", "dense_unet", "--levels", "2", "--layers", "1", "--growth", "4", "--width", "8", "--head", "4",
              "--transfer", "pu", "--noise-input", "--patch", "32", "--batch", "4", "--lr", "1e-3",
              "--lr-cosine-steps", "8", "--log-every", "4", "--val-every", "4", "--no-progress", "--no-oidn"]
     assert main(["--data", str(noisy_dataset), "--out", str(run), "--steps", "4", *flags]) == 0
     assert main(["--out", str(run), "--resume", "--steps", "8", "--no-progress"]) == 0
     model, config, meta = load_model(run / "last.ckpt")
-    assert config.arch == "dense_unet" and config.noise_input and meta["step"] == 8
+    assert config.arch == "dense_unet" and config.noise_input and config.head == 4 and meta["step"] == 8
     vals = [r for r in _log(run) if r["type"] == "val"]
     assert [r["step"] for r in vals] == [4, 8] and all(r["psnr"] is not None for r in vals)
     lrs = [r["lr"] for r in _log(run) if r["type"] == "train"]
