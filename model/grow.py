@@ -49,7 +49,8 @@ def grow_model(target: torch.nn.Module, source: torch.nn.Module) -> None:
     if same == target.config:
         target.load_state_dict(source.state_dict(), strict=True)
         return
-    if target.config.multiscale and not same.head and dataclasses.replace(same, head=target.config.head) == target.config:
+    gains_head = not same.head and dataclasses.replace(same, head=target.config.head) == target.config
+    if target.config.multiscale and gains_head:
         target.load_state_dict(source.state_dict(), strict=False)  # all but the new head
         return
     check_growable(source.config, target.config)
