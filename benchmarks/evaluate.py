@@ -222,7 +222,8 @@ def write_results(out: Path, rows: dict[str, Any], images: dict[str, dict[str, n
     summary = summarize(rows, spps, ceiling_db)
     first = next(iter(denoisers.values()))
     models = {name: {"path": str(d.path), "sha256": d.sha256, "config": d.config.to_dict(),
-                     "step": d.meta.get("step"), "precision": d.precision, "flips": d.flips}
+                     "step": d.meta.get("step"), "precision": d.precision, "flips": d.flips,
+                     **d.ensemble_record()}
               for name, d in denoisers.items()}
     result = {**record, "path": PATH, "model": next(iter(models.values())), "models": models, "spp": spps,
               "seed": SEED, "ceiling_db": ceiling_db, "summary": summary, "scenes": rows}

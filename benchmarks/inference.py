@@ -21,7 +21,9 @@ figure is the median of all runs of all processes; beside it the range of the pe
 ratios to OIDN (``process_s_per_mp``: each process's median).
 
 Each model runs in every ``--precisions`` float format (:mod:`model.precision`; a bfloat16 column
-is named ``model@bfloat16``); the JSON records whether the CPU computes bfloat16 natively.
+is named ``model@bfloat16``), or only in the one its ``--models`` entry names (``fast+u-high@auto``:
+an ensemble, :mod:`pipeline.ensemble`, each member in its own ``auto`` format); the JSON records
+whether the CPU computes bfloat16 natively.
 
 Also prints where the time of one call goes at the smallest size (stages of the chain).
 ``--quick``: 256x256 only, one run. Prints a table and writes benchmarks/results/inference.json.
@@ -52,7 +54,8 @@ from model.checkpoint import save_checkpoint
 from model.config import PRESETS, preset
 from model.precision import PRECISIONS, native_bfloat16
 from model.unet import macs_per_pixel
-from pipeline.denoise import Denoiser
+from pipeline.denoise import Denoiser, ensemble_members
+from pipeline.ensemble import SEPARATOR
 from pipeline.oidn import oidn_available, oidn_denoise
 
 RESULTS = Path(__file__).resolve().parent / "results" / "inference.json"
@@ -60,7 +63,10 @@ SIZES = ((128, 128), (256, 256), (1280, 720), (1920, 1080))
 
 
 def _checkpoint(name: str, folder: Path) -> Path:
-    """A preset with random weights (as after training: BN statistics, a non-zero output conv)."""
+    """A preset with random weights (as after training: BN statistics, a non-zero output conv);
+    an ensemble ``A+B`` (:mod:`pipeline.ensemble`) the ``+``-joined paths of its members."""
+    if len(ensemble_members(name)) > 1:
+        return Path(SEPARATOR.join(str(_checkpoint(part, folder)) for part in ensemble_members(name)))
     if name not in PRESETS:
         return Path(name)
     torch.manual_seed(0)
@@ -169,12 +175,13 @@ def table(results: dict[str, Any]) -> list[str]:
 
 def measure_process(spec: dict[str, Any]) -> dict[str, Any]:
     """What one process measures: every size (:func:`measure_size`) and, when ``spec["stages"]``,
-    the stages at the first size. ``spec``: checkpoint ``files`` by name, ``precisions``,
-    ``sizes``, ``repeat``, ``threads``."""
+    the stages at the first size. ``spec``: checkpoint ``files`` by name, ``precisions`` (a
+    model's own list by name) and ``all`` (the others'), ``sizes``, ``repeat``, ``threads``."""
     models = {_key(name, prec): Denoiser(path, threads=spec["threads"] or None, precision=prec)
-              for name, path in spec["files"].items() for prec in spec["precisions"]}
+              for name, path in spec["files"].items() for prec in spec["precisions"].get(name, spec["all"])}
     out: dict[str, Any] = {"models": list(models), "torch_threads": torch.get_num_threads(),
-                           "macs_per_pixel": {n: _macs(m.config) for n, m in models.items()}, "sizes": {}}
+                           "macs_per_pixel": {n: sum(_macs(k.config) for k in m.members) for n, m in models.items()},
+                           "sizes": {}}
     for w, h in spec["sizes"]:
         row = out["sizes"][f"{w}x{h}"] = measure_size(w, h, models, spec["repeat"])
         print(f"... {w}x{h}: " + ", ".join(f"{k} {v['s_per_mp']:.2f} s/MP" for k, v in row.items()),
@@ -205,7 +212,8 @@ def main() -> None:
     p.add_argument("--quick", action="store_true", help="256x256 only, one run, one process")
     p.add_argument("--sizes", type=size_list, default=list(SIZES))
     p.add_argument("--models", default="u-fast,u-balanced,u-high,fast",
-                   help="preset names (random weights) or checkpoint files")
+                   help="preset names (random weights), checkpoint files or ensembles A+B; NAME@PRECISION "
+                   "runs that model in that float format only")
     p.add_argument("--precisions", default="float32,bfloat16",
                    help="float formats of the networks (model.precision.PRECISIONS)")
     p.add_argument("--repeat", type=int, default=5)
@@ -227,13 +235,18 @@ def main() -> None:
     processes = 1 if args.quick else args.processes
     load_before = os.getloadavg()
     with tempfile.TemporaryDirectory() as tmp:
-        files = {name: str(_checkpoint(name, Path(tmp))) for name in args.models.split(",")}
-        missing = [name for name, path in files.items() if not Path(path).is_file()]
+        entries = [entry.partition("@") for entry in args.models.split(",")]  # NAME[@PRECISION]
+        files = {name: str(_checkpoint(name, Path(tmp))) for name, _, _ in entries}
+        fixed = {name: [prec] for name, _, prec in entries if prec}
+        if not {p for ps in fixed.values() for p in ps} <= set(PRECISIONS):
+            raise SystemExit(f"inference: a model's @PRECISION takes {', '.join(PRECISIONS)}, got {args.models!r}")
+        missing = [name for name, path in files.items()
+                   if not all(Path(p).is_file() for p in ensemble_members(path))]
         if missing:
             raise SystemExit(f"inference: not a preset nor a checkpoint file: {', '.join(missing)}")
         measured = []
         for i in range(processes):
-            spec = {"files": files, "precisions": precisions, "sizes": sizes,
+            spec = {"files": files, "precisions": fixed, "all": precisions, "sizes": sizes,
                     "repeat": repeat, "threads": args.threads, "stages": i == 0}
             spec_file, out_file = Path(tmp) / f"spec{i}.json", Path(tmp) / f"out{i}.json"
             spec_file.write_text(json.dumps(spec))

@@ -176,6 +176,27 @@ def noise_guard(results: Results) -> list[str]:
 
 # --- speed -----------------------------------------------------------------------------------------
 
+def ensemble(results: Results) -> list[str]:
+    """Each member, their mean and every combination setting against OIDN, per set and spp."""
+    data = results.json("ensemble")
+    lines = [caption("python -m benchmarks.ensemble", "benchmarks/results/ensemble.json", data,
+                     f"Members {' + '.join(data['members'])}: each alone, their plain mean, and combined with "
+                     "each setting (r: window radius, lam: the regulariser of pipeline/ensemble.py); every "
+                     "candidate through the noise guard as the default path; OIDN colour-only on the same "
+                     "images. Mean PSNR dB; validation: held-out procedural scenes (the tuning set); eval: "
+                     "../shared/eval-scenes, ceiling >= 40 dB, seed 7."), ""]
+    rows = []
+    for key in ("validation", "eval"):
+        if key not in data:
+            continue
+        summary = data[key]
+        columns = list(summary["mean"])
+        for spp, row in summary["per_spp"].items():
+            rows.append([key, spp, str(row["images"]), *(_f(row[c]) for c in columns)])
+        rows.append([key, "**mean**", "", *(_f(summary["mean"][c]) for c in columns)])
+    return lines + _table(["set", "spp", "images", *columns], rows, right=1)
+
+
 def ratio_range(row: dict[str, Any], name: str) -> tuple[float, float] | None:
     """The lowest and highest of ``name``'s per-process time ratios to OIDN in one size's row of
     benchmarks/results/inference.json (None where fewer than two processes were recorded)."""
@@ -443,8 +464,8 @@ def denoise_tile_memory(results: Results) -> list[str]:
 
 
 TABLES: dict[str, Callable[[Results], list[str]]] = {
-    f.__name__: f for f in (scoreboard, scoreboard_scenes, noise_guard, noise_guard_settings, inference, science,
-                            multiscale_presets, roofline, budget, presets, validation, val_scenes, trend, ablations,
+    f.__name__: f for f in (scoreboard, scoreboard_scenes, noise_guard, noise_guard_settings, ensemble, inference,
+                            science, multiscale_presets, roofline, budget, presets, validation, val_scenes, trend, ablations,
                             train_throughput, scaleout, extremes, render_memory, denoise_memory, denoise_tile_memory)}
 
 

@@ -199,7 +199,7 @@ def budget_candidates(model: str | None, settings: RenderSettings) -> dict[str, 
     """Models to choose from: every preset with weights for ``auto``, else the one given."""
     if model != "auto":
         den = make_denoiser(model, settings)
-        return {Path(den.path).stem: den}
+        return {den.label: den}
     found = {name: WEIGHTS_DIR / f"{name}.ckpt" for name in PRESET_ORDER}
     found = {name: path for name, path in found.items() if path.exists()}
     if not found:

@@ -72,7 +72,7 @@ def render_parser() -> OneLineParser:
         "and keep the render where its noise does not explain the change)"))
     p.add_argument("--spp", type=positive_int, help="samples per pixel (128)")
     p.add_argument("--model", help="checkpoint or preset name (default: the shipped weights); "
-                   "'auto' with --time-budget")
+                   "A+B: an ensemble (e.g. fast+u-high); 'auto' with --time-budget")
     compare = p.add_mutually_exclusive_group()
     compare.add_argument("--compare", choices=["oidn"], action="append", default=[],
                          help="denoise with OIDN colour-only too, and fail without pyoidn (default: "
@@ -125,7 +125,8 @@ def denoise_parser() -> OneLineParser:
                    help="samples per pixel of the input, for the noise guard (default: the file's spp)")
     p.add_argument("--no-noise-guard", action="store_true",
                    help="ignore the variance: keep the denoiser's output as it is")
-    p.add_argument("--model", help="checkpoint or preset name (default: the shipped weights)")
+    p.add_argument("--model", help="checkpoint or preset name (default: the shipped weights); "
+                   "A+B: an ensemble (e.g. fast+u-high)")
     p.add_argument("--reference", help="reference image: print metrics")
     p.add_argument("--max-memory-mb", type=float, default=DEFAULT_MAX_MEMORY_MB, help="tile memory bound")
     p.add_argument("--skip-below", type=positive_float, metavar="NOISE", help=SKIP_HELP)

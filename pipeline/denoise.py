@@ -19,6 +19,7 @@ from imaging.blocks import block_rows
 from imaging.errors import DenoiserError
 from imaging.hashing import file_sha256
 from imaging.tiling import core_for_budget, cores_for_budget
+from pipeline.ensemble import SEPARATOR, combine_in_place, split_spec
 from pipeline.noise_guard import DEFAULT_STRENGTH, guard_in_place, strength_for
 
 if TYPE_CHECKING:
@@ -49,6 +50,46 @@ def resolve_model(name: str | Path | None) -> Path:
                                 "a checkpoint file)")
         return path
     return Path(name)
+
+
+def ensemble_members(spec: str | Path | None) -> list[str | Path | None]:
+    """The models of a ``--model`` value: ``A+B[+...]`` (:mod:`pipeline.ensemble`) names several,
+    unless it is an existing file's path; anything else is one. Raises :class:`DenoiserError`
+    for an empty member."""
+    if spec is None or SEPARATOR not in str(spec) or Path(spec).exists():
+        return [spec]
+    try:
+        return list(split_spec(str(spec)))
+    except ValueError as exc:
+        raise DenoiserError(str(exc)) from None
+
+
+@dataclass
+class Network:
+    """One loaded checkpoint: its file, training module, config, metadata, the network that runs
+    (folded unless ``optimize`` is off), its float format and its receptive radius in pixels."""
+
+    path: Path
+    model: Any
+    config: Any
+    meta: dict[str, Any]
+    net: Any
+    dtype: Any
+    margin: int
+
+    @classmethod
+    def load(cls, path: Path, optimize: bool, precision: str) -> Network:
+        import torch
+
+        from model.architectures import prepare_for_inference, receptive_radius
+        from model.checkpoint import load_model
+        from model.precision import compute_dtype
+
+        model, config, meta = load_model(path)
+        model.eval()
+        dtype = compute_dtype(precision, config.multiscale) if optimize else torch.float32
+        net = prepare_for_inference(model, dtype) if optimize else model
+        return cls(path, model, config, meta, net, dtype, receptive_radius(config))
 
 
 @dataclass
@@ -85,10 +126,14 @@ class Denoiser:
     """A trained model ready to denoise HxWx3 linear radiance on the CPU.
 
     ``checkpoint``: a file written by ``train`` or a preset name (:func:`resolve_model`; default:
-    the shipped ``model/weights/default.ckpt``).
+    the shipped ``model/weights/default.ckpt``); ``A+B[+...]`` an ensemble: every model denoises
+    the image and :mod:`pipeline.ensemble` combines their outputs (weighted by their estimated
+    error where a variance is given, else their mean) before the guard. ``path``, ``model``,
+    ``config``, ``meta``, ``net`` and ``dtype`` are the first model's; ``members`` holds them all.
     ``max_memory_mb`` bounds the scratch memory of :meth:`denoise_array` as OIDN's
     ``maxMemoryMB`` does: the memory it uses beyond the input and output images (the output,
-    the guard's weight map and, asked for, the network's output). Every step works within it:
+    the guard's weight map and, asked for, the network's output; an ensemble also holds each
+    further model's output and a weight per model and pixel). Every step works within it:
     counting invalid values and the exposure in row blocks, the network on tiles planned with
     :func:`model.infer.tile_bytes_per_pixel`, the noise guard on tiles and row blocks
     (:func:`pipeline.noise_guard.guard_in_place`). Creating a Denoiser fixes glibc's mmap
@@ -113,13 +158,9 @@ class Denoiser:
                  flips: int = 1) -> None:
         import torch
 
-        from model.checkpoint import load_model
-        from model.architectures import prepare_for_inference, receptive_radius
-        from model.precision import check_precision, compute_dtype
-
         from model.flips import check_flips
+        from model.precision import check_precision
 
-        path = resolve_model(checkpoint)
         try:
             check_precision(precision)  # before the checkpoint is read
             self.flips = check_flips(flips)
@@ -127,59 +168,82 @@ class Denoiser:
             raise DenoiserError(str(exc)) from None
         if not 0 < max_memory_mb < float("inf"):  # also refuses NaN
             raise DenoiserError(f"max memory must be positive and finite, got {max_memory_mb} MB")
+        specs = ensemble_members(checkpoint)
+        paths = [resolve_model(spec) for spec in specs]  # every member's file known before any load
         if threads:
             torch.set_num_threads(int(threads))
         fix_mmap_threshold()
         use_huge_pages()  # before the first large tensor: the tiles' temporaries fault per 2 MiB
-        self.path = path
-        self.model, self.config, self.meta = load_model(path)
-        if self.flips > 1 and self.config.aux_inputs:
-            raise DenoiserError(f"{path.name}: test-time flips need a model without albedo/normal inputs")
-        self.model.eval()
         self.optimize = optimize
-        self.dtype = compute_dtype(precision, self.config.multiscale) if optimize else torch.float32
-        self.net = prepare_for_inference(self.model, self.dtype) if optimize else self.model
+        self.members = [Network.load(path, optimize, precision) for path in paths]
+        for member in self.members:
+            if self.flips > 1 and member.config.aux_inputs:
+                raise DenoiserError(f"{member.path.name}: test-time flips need a model without albedo/normal inputs")
+        first = self.members[0]  # what a single model's callers read: its file, config and network
+        self.path, self.model, self.config, self.meta = first.path, first.model, first.config, first.meta
+        self.dtype, self.net = first.dtype, first.net
         self.max_memory_mb = float(max_memory_mb)
-        self.margin = receptive_radius(self.config)
+        self.margin = max(m.margin for m in self.members)
         self.skip_below = skip_below
 
     @property
     def name(self) -> str:
-        return self.path.name
+        """The checkpoint's file name; an ensemble's joined by ``+``."""
+        return SEPARATOR.join(m.path.name for m in self.members)
+
+    @property
+    def label(self) -> str:
+        """The model's short name: its file's stem (``fast``), an ensemble's joined (``fast+u-high``)."""
+        return SEPARATOR.join(m.path.stem for m in self.members)
 
     @property
     def precision(self) -> str:
-        """The float format the network computes in: ``float32`` or ``bfloat16``."""
-        return str(self.dtype).removeprefix("torch.")
+        """The float format the network computes in: ``float32`` or ``bfloat16`` (an ensemble's
+        members' joined by ``+`` where they differ)."""
+        names = [str(m.dtype).removeprefix("torch.") for m in self.members]
+        return names[0] if len(set(names)) == 1 else SEPARATOR.join(names)
 
     @property
     def sha256(self) -> str:
-        return file_sha256(self.path)
+        """The checkpoint file's SHA-256 (an ensemble's members' joined by ``+``)."""
+        return SEPARATOR.join(file_sha256(m.path) for m in self.members)
 
     @property
     def needs_aovs(self) -> bool:
-        """True when the model consumes albedo and normals (the render must provide them)."""
-        return bool(self.config.aux_inputs)
+        """True when a model consumes albedo and normals (the render must provide them)."""
+        return any(m.config.aux_inputs for m in self.members)
+
+    def ensemble_record(self) -> dict[str, Any]:
+        """For an ensemble, what a run's record adds beside the first model's config:
+        ``{"members": [{"path", "sha256", "step", "precision", "config"}...]}``; ``{}`` for one model."""
+        if len(self.members) == 1:
+            return {}
+        return {"members": [{"path": str(m.path), "sha256": file_sha256(m.path), "step": m.meta.get("step"),
+                             "precision": str(m.dtype).removeprefix("torch."), "config": m.config.to_dict()}
+                            for m in self.members]}
 
     @property
     def max_bytes(self) -> float:
         """The scratch memory bound in bytes."""
         return self.max_memory_mb * 2**20
 
-    def bytes_per_pixel(self) -> float:
-        """Peak scratch bytes per window pixel of one tile (:func:`model.infer.tile_bytes_per_pixel`)."""
+    def bytes_per_pixel(self, member: Network | None = None) -> float:
+        """Peak scratch bytes per window pixel of one tile of ``member`` (default: the first model;
+        :func:`model.infer.tile_bytes_per_pixel`)."""
         from model.infer import tile_bytes_per_pixel
 
-        return tile_bytes_per_pixel(self.config, self.optimize, self.dtype.itemsize, self.flips)
+        m = member or self.members[0]
+        return tile_bytes_per_pixel(m.config, self.optimize, m.dtype.itemsize, self.flips)
 
-    def core_size(self) -> int:
+    def core_size(self, member: Network | None = None) -> int:
         """Tile core side that keeps one tile within ``max_memory_mb``: its window's pixels at
         :meth:`bytes_per_pixel`, plus the fixed cost of a forward pass."""
         from model.infer import TILE_FIXED_BYTES
 
-        return core_for_budget(self.bytes_per_pixel(), self.max_bytes - TILE_FIXED_BYTES, self.margin)
+        m = member or self.members[0]
+        return core_for_budget(self.bytes_per_pixel(m), self.max_bytes - TILE_FIXED_BYTES, m.margin)
 
-    def cores(self, height: int, width: int) -> tuple[int, int]:
+    def cores(self, height: int, width: int, member: Network | None = None) -> tuple[int, int]:
         """The (rows, columns) tile core for an HxW image: every window within ``max_memory_mb``
         as :meth:`core_size`'s, and the fewest window pixels in all (:func:`imaging.tiling.cores_for_budget`:
         with a multi-scale network's ~250-px margins, a 1080p image in two full-height strips
@@ -187,8 +251,9 @@ class Denoiser:
         from model.architectures import alignment
         from model.infer import TILE_FIXED_BYTES
 
-        return cores_for_budget(height, width, self.bytes_per_pixel(), self.max_bytes - TILE_FIXED_BYTES,
-                                self.margin, alignment(self.config), minimum=16)
+        m = member or self.members[0]
+        return cores_for_budget(height, width, self.bytes_per_pixel(m), self.max_bytes - TILE_FIXED_BYTES,
+                                m.margin, alignment(m.config), minimum=16)
 
     def denoise_array(self, rgb: np.ndarray, albedo: np.ndarray | None = None,
                       normals: np.ndarray | None = None, variance: np.ndarray | None = None,
@@ -220,10 +285,16 @@ class Denoiser:
         if variance is not None and np.shape(variance) != rgb.shape:
             raise DenoiserError(f"variance shape {np.shape(variance)} differs from image {rgb.shape}")
         count = [0]
-        out = denoise_image(self.net, rgb, aux, self.cores(height, width),
-                            progress=lambda n, total: count.__setitem__(0, total),
-                            variance=variance, skip_below=self.skip_below, max_bytes=self.max_bytes,
-                            flips=self.flips)
+
+        def run(member: Network) -> np.ndarray:
+            return denoise_image(member.net, rgb, aux, self.cores(height, width, member),
+                                 progress=lambda n, total: count.__setitem__(0, count[0] + (n == total) * total),
+                                 variance=variance, skip_below=self.skip_below, max_bytes=self.max_bytes,
+                                 flips=self.flips)
+
+        out = run(self.members[0])
+        if len(self.members) > 1:  # each further output is one more image beside ``out``
+            combine_in_place(rgb, [out, *(run(m) for m in self.members[1:])], variance, self.max_bytes)
         network = None
         if keep_network:  # the guard changes ``out`` in place
             network = out.copy() if variance is not None else out

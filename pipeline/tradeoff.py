@@ -18,11 +18,11 @@ from typing import Any
 
 from imaging.atomic_io import json_safe, write_json_atomic
 from imaging.errors import DenoiserError
-from imaging.hashing import file_sha256
 from imaging.progress import ProgressBar, ProgressFactory
 from imaging.render import RenderResult
 from model.config import PRESETS
-from pipeline.denoise import Denoiser, resolve_model
+from pipeline.denoise import Denoiser, ensemble_members, resolve_model
+from pipeline.ensemble import SEPARATOR
 from pipeline.evaluation import (OIDN, Output, RenderSettings, aovs_for, check_reference, denoise_output, make_denoiser,
                                  read_reference, render_input, render_reference, score)
 from pipeline.pareto import ERROR_OF_METRIC, equal_quality, metric_error, pareto_front
@@ -82,16 +82,19 @@ class Point:
 
 
 def model_labels(models: list[str]) -> dict[str, Path]:
-    """Label -> checkpoint for each ``--models`` entry (preset name, else file stem; made unique).
+    """Label -> checkpoint for each ``--models`` entry (preset name, else file stem; made unique;
+    an ensemble ``A+B``: its members' labels and paths joined by ``+``).
 
     Raises :class:`DenoiserError` naming the file when a preset's weights or a file are missing.
     """
     labels: dict[str, Path] = {}
     for name in models:
-        path = resolve_model(name)
-        if not path.is_file():
-            raise DenoiserError(f"{path}: checkpoint not found")
-        label = name if name in PRESETS else path.stem
+        paths = [resolve_model(member) for member in ensemble_members(name)]  # A+B: an ensemble
+        for path in paths:
+            if not path.is_file():
+                raise DenoiserError(f"{path}: checkpoint not found")
+        path = Path(SEPARATOR.join(map(str, paths)))
+        label = SEPARATOR.join(n if n in PRESETS else p.stem for n, p in zip(ensemble_members(name), paths))
         base, n = label, 2
         while label in labels or label in ("none", "oidn"):
             label, n = f"{base}-{n}", n + 1
@@ -161,8 +164,9 @@ def measure(cfg: TradeoffConfig, progress: ProgressFactory | None = None) -> dic
     info = {
         "scene": str(settings.scene), "resolution": [w, h], "megapixels": w * h / 1e6, "seed": settings.seed,
         "reference": ref_info, "mitsuba": metadata.version("mitsuba"), "variant": noisy.variant,
-        "models": {name: {"checkpoint": str(d.path), "sha256": file_sha256(d.path),
-                          "precision": d.precision, "flips": d.flips, "config": d.config.to_dict()} for name, d in models.items()},
+        "models": {name: {"checkpoint": str(d.path), "sha256": d.sha256,
+                          "precision": d.precision, "flips": d.flips, "config": d.config.to_dict(),
+                          **d.ensemble_record()} for name, d in models.items()},
     }
     return analyse(points, info, cfg.metric)
 

@@ -84,6 +84,16 @@ def test_missing_preset_weights_name_the_file(tmp_path: Path, monkeypatch: pytes
     assert code == 1 and len(err.splitlines()) == 1 and str(tmp_path / "balanced.ckpt") in err
 
 
+def test_ensemble_labels_join_their_members(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(denoise, "WEIGHTS_DIR", tmp_path)
+    fast, mine = write_tiny_checkpoint(tmp_path / "fast.ckpt"), write_tiny_checkpoint(tmp_path / "mine.ckpt")
+    labels = model_labels(["fast", f"fast+{mine}"])
+    assert labels == {"fast": fast, "fast+mine": Path(f"{fast}+{mine}")}
+    assert len(denoise.Denoiser(labels["fast+mine"]).members) == 2
+    with pytest.raises(DenoiserError, match="nope.ckpt: checkpoint not found"):
+        model_labels([f"fast+{tmp_path / 'nope.ckpt'}"])
+
+
 def test_bad_settings(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     with pytest.raises(DenoiserError, match="distinct positive"):
         TradeoffConfig(RenderSettings("x", reference_spp=4), out="y", spp=[2, 2]).check()

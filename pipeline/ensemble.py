@@ -1,0 +1,164 @@
+"""Combine several denoisers' outputs of one render, each pixel weighted by its estimated error.
+
+Two networks of different shapes make different errors: measured on our held-out scenes and on
+../shared/eval-scenes, the flat ``fast`` is the better one from 32 spp up (pixel-scale detail),
+the multi-scale ``u-high`` from 1 to 16 spp (context), and each is better in some places of every
+image. Their plain mean gains at a few spp and loses from 64 spp up, where one of them is clearly
+better locally. The render's two halves tell which: with ``y_k`` a denoiser's output, ``x`` the
+render and ``V`` the window mean of the halves' variance estimate (:mod:`pipeline.noise_guard`),
+the window mean ``D_k`` of ``(y_k - x)^2`` (summed over channels) estimates ``V + T_k`` where
+``T_k`` is that output's own squared error, so ``T_k ~ max(0, D_k - V)``. Each output is weighted
+by ``1 / (T_k + lam * V)``: inverse error where the render has converged, the plain mean where
+the noise is so large that the estimates of ``T_k`` cannot tell the outputs apart (``lam``
+regularises the estimate by its own scatter, which grows with V). Without a variance (a single
+EXR) the outputs are averaged.
+
+``benchmarks/ensemble.py`` measured the window radius and ``lam`` on our held-out scenes (the
+results were flat in both: radius 2-5, lam 0.1-1 within 0.05 dB) and scores the result on the
+eval scenes. Window sums are exact per tile (:func:`pipeline.noise_guard.box_mean_2d`), so
+:func:`combine_in_place` gives the whole-image result bit for bit within any memory bound.
+"""
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from imaging.blocks import row_blocks
+from imaging.tiling import Tile, core_for_budget, run_windows
+from pipeline.noise_guard import box_mean_2d, clean_render
+
+DEFAULT_RADIUS = 3  # window 7x7 (benchmarks/ensemble.py)
+DEFAULT_LAMBDA = 0.3  # T_k + lam * V (benchmarks/ensemble.py)
+SEPARATOR = "+"  # ``--model fast+u-high``
+
+
+def combine_weights(noisy: np.ndarray, outputs: Sequence[np.ndarray], variance: np.ndarray,
+                    radius: int = DEFAULT_RADIUS, lam: float = DEFAULT_LAMBDA) -> np.ndarray:
+    """HxWxK weights (summing to 1 per pixel) of K outputs of one render: ``1 / (T_k + lam * V)``
+    normalised, with V and ``T_k = max(0, D_k - V)`` window means over ``(2r+1)^2`` pixels (see
+    the module's docstring). Where V is not finite in a window the outputs get equal weights;
+    where some ``T_k + lam * V`` are 0 (a converged window: V = 0 and those outputs equal the
+    render there) those outputs share the weight."""
+    if not outputs:
+        raise ValueError("no outputs to combine")
+    if not (lam >= 0 and np.isfinite(lam)):
+        raise ValueError(f"lam must be >= 0 and finite, got {lam}")
+    for out in outputs:
+        if out.shape != noisy.shape or variance.shape != noisy.shape:
+            raise ValueError(f"shapes differ: noisy {noisy.shape}, output {out.shape}, variance {variance.shape}")
+    var = np.asarray(variance, np.float32)
+    with np.errstate(invalid="ignore", over="ignore"):
+        positive = np.maximum(var, np.float32(0.0))
+    total = _channel_sum(positive)  # NaN or inf where a channel is
+    del positive
+    unbounded = ~np.isfinite(total)
+    anywhere_unbounded = bool(unbounded.any())
+    if anywhere_unbounded:
+        total[unbounded] = 0.0
+    v = box_mean_2d(total, radius)
+    del total
+    floor = np.float32(lam) * v
+    errors = []
+    for out in outputs:
+        change = np.subtract(out, noisy, dtype=np.float32)
+        change *= change
+        t = box_mean_2d(_channel_sum(change), radius)
+        del change
+        t -= v
+        np.maximum(t, np.float32(0.0), out=t)
+        t += floor
+        errors.append(t)
+    del v, floor
+    smallest = errors[0].copy()
+    for t in errors[1:]:
+        np.minimum(smallest, t, out=smallest)
+    w = np.empty((*smallest.shape, len(errors)), np.float32)
+    norm = np.zeros_like(smallest)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        for k, t in enumerate(errors):  # 1 / err scaled by the smallest: no overflow for tiny errors
+            np.divide(smallest, t, out=t)
+            np.nan_to_num(t, copy=False, nan=1.0)  # 0/0: the outputs whose error is 0 share the weight
+            norm += t
+    if anywhere_unbounded:
+        equal = box_mean_2d(unbounded.astype(np.float32), radius) > 0
+        for t in errors:
+            t[equal] = 1.0
+        norm[equal] = len(errors)
+    for k, t in enumerate(errors):
+        t /= norm
+        w[:, :, k] = t
+    return w
+
+
+def _channel_sum(a: np.ndarray) -> np.ndarray:
+    """HxW sum of an HxWx3 float32 array's channels, as whole planes ((c0 + c1) + c2): numpy
+    reduces a short last axis slowly (:mod:`pipeline.noise_guard`)."""
+    total = np.add(a[:, :, 0], a[:, :, 1])
+    total += a[:, :, 2]
+    return total
+
+
+def combine(noisy: np.ndarray, outputs: Sequence[np.ndarray], variance: np.ndarray | None,
+            radius: int = DEFAULT_RADIUS, lam: float = DEFAULT_LAMBDA) -> np.ndarray:
+    """The weighted sum of ``outputs`` (:func:`combine_weights`), or their mean without a variance;
+    float32 HxWx3."""
+    if variance is None:
+        out = np.array(outputs[0], np.float32)
+        for other in outputs[1:]:
+            out += other
+        out /= np.float32(len(outputs))
+        return out
+    w = combine_weights(clean_render(noisy), outputs, np.asarray(variance, np.float32), radius, lam)
+    return weighted_sum(outputs, w)
+
+
+def weighted_sum(outputs: Sequence[np.ndarray], w: np.ndarray) -> np.ndarray:
+    """``sum_k w[..., k] * outputs[k]`` for an HxWxK weight map; float32 HxWx3."""
+    out = np.multiply(outputs[0], w[:, :, 0:1], dtype=np.float32)
+    for k in range(1, len(outputs)):
+        out += outputs[k] * w[:, :, k:k + 1]
+    return out
+
+
+# Peak scratch bytes per pixel (numpy allocations, traced) of combine_weights for K outputs with
+# clean_render's copy of its window, and of one row block's combination (its result included),
+# float32 HxWx3 in: bounds with headroom of what tests/test_ensemble.py measures with tracemalloc
+# (67-77 + 10-13 K and 12-27 at 1x500 to 300x300).
+def weight_bytes_per_pixel(k: int) -> int:
+    return 64 + 16 * k
+
+
+COMBINE_BYTES_PER_PIXEL = 40
+
+
+def combine_in_place(noisy: np.ndarray, outputs: Sequence[np.ndarray], variance: np.ndarray | None,
+                     max_bytes: float, radius: int = DEFAULT_RADIUS, lam: float = DEFAULT_LAMBDA) -> None:
+    """:func:`combine` written into ``outputs[0]`` within ``max_bytes`` of scratch beyond an HxWxK
+    weight map (tiles with ``radius`` pixels of context, then row blocks); bit for bit the
+    whole-image result. ``outputs``: float32 HxWx3 arrays; the others are left unchanged."""
+    first = outputs[0]
+    height, width = first.shape[:2]
+    k = len(outputs)
+    if variance is None:
+        for rows in row_blocks(height, width, COMBINE_BYTES_PER_PIXEL, max_bytes):
+            first[rows] = combine(noisy[rows], [o[rows] for o in outputs], None)
+        return
+
+    def weight(t: Tile) -> np.ndarray:
+        window = slice(t.wy0, t.wy1), slice(t.wx0, t.wx1)
+        return combine_weights(clean_render(noisy[window]), [o[window] for o in outputs],
+                               np.asarray(variance[window], np.float32), radius, lam)
+
+    weights = run_windows(weight, height, width, core_for_budget(weight_bytes_per_pixel(k), max_bytes, radius),
+                          radius, out=np.empty((height, width, k), np.float32))
+    for rows in row_blocks(height, width, COMBINE_BYTES_PER_PIXEL, max_bytes):
+        first[rows] = weighted_sum([o[rows] for o in outputs], weights[rows])
+
+
+def split_spec(spec: str) -> list[str]:
+    """The members of an ensemble spec ``A+B[+C...]``; raises ValueError for an empty member."""
+    parts = [p.strip() for p in spec.split(SEPARATOR)]
+    if len(parts) < 2 or not all(parts):
+        raise ValueError(f"model ensemble {spec!r}: expected MODEL+MODEL[+...] with no empty member")
+    return parts

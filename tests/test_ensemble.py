@@ -1,0 +1,176 @@
+"""Ensembles: outputs weighted by their estimated error, ``--model A+B`` through the Denoiser and CLI."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from imaging.errors import DenoiserError
+from imaging.exr import write_exr
+from pipeline.cli import denoise_main
+from pipeline.denoise import Denoiser, ensemble_members
+from pipeline.ensemble import (COMBINE_BYTES_PER_PIXEL, weighted_sum, combine, combine_in_place, combine_weights,
+                               split_spec, weight_bytes_per_pixel)
+from pipeline.noise_guard import clean_render
+from tests.test_denoise import write_tiny_checkpoint
+from tests.test_model_unet import TINY as TINY_UNET
+from tests.test_noise_guard import _traced_peak
+
+SIGMA = 0.05
+
+
+def _case(h: int = 48, w: int = 64, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A smooth truth, a render of it with Gaussian noise of known variance, that variance."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    truth = np.stack([0.5 + 0.3 * np.sin(xx / 9), 0.4 + yy / (2 * h), 0.6 + 0 * xx], axis=2).astype(np.float32)
+    noisy = (truth + rng.normal(0, SIGMA, truth.shape)).astype(np.float32)
+    return truth, noisy, np.full(truth.shape, SIGMA**2, np.float32)
+
+
+def test_the_output_with_the_smaller_error_wins_where_it_is_better() -> None:
+    """A = the truth; B = the truth plus 0.2 on the left half: on the left the combination takes
+    A (its estimated error ~0 against B's 3 * 0.04), on the right both are the truth and so is
+    their combination."""
+    truth, noisy, var = _case()
+    biased = truth.copy()
+    biased[:, :32] += 0.2
+    w = combine_weights(noisy, [truth, biased], var)
+    assert w.shape == (48, 64, 2) and np.allclose(w.sum(axis=2), 1, atol=1e-6) and (w >= 0).all()
+    assert w[:, :28, 0].min() > 0.9  # left of the window's reach into the right half
+    out = combine(noisy, [truth, biased], var)
+    left_err = np.abs(out[:, :28] - truth[:, :28]).mean()
+    assert left_err < 0.1 * 0.2
+    np.testing.assert_allclose(out[:, 36:], truth[:, 36:], atol=1e-6)
+
+
+def test_equal_estimated_errors_give_the_mean() -> None:
+    """Outputs symmetric about the render have the same window errors: weight 1/2 each."""
+    _, noisy, var = _case(seed=1)
+    up, down = noisy + 0.1, noisy - 0.1
+    np.testing.assert_allclose(combine_weights(noisy, [up, down], var), 0.5, atol=1e-6)
+    np.testing.assert_allclose(combine(noisy, [up, down], var), noisy, atol=1e-6)
+
+
+def test_no_variance_averages_and_one_output_is_itself() -> None:
+    truth, noisy, var = _case(seed=2)
+    a, b = truth + 0.3, truth - 0.1
+    np.testing.assert_allclose(combine(noisy, [a, b], None), truth + 0.1, atol=1e-6)
+    np.testing.assert_array_equal(combine(noisy, [a], var), a)
+
+
+def test_converged_and_unbounded_windows() -> None:
+    """V = 0 everywhere: an output equal to the render keeps all the weight against one that
+    changed it; a non-finite variance gives equal weights across its window; never NaN."""
+    _, noisy, _ = _case(seed=3)
+    zero = np.zeros_like(noisy)
+    w = combine_weights(noisy, [noisy.copy(), noisy + 0.01], zero)
+    np.testing.assert_array_equal(w[:, :, 0], 1.0)
+    np.testing.assert_array_equal(combine_weights(noisy, [noisy.copy(), noisy.copy()], zero), 0.5)
+    var = np.full_like(noisy, SIGMA**2)
+    var[20, 30, 1] = np.inf
+    var[5, 5, 0] = np.nan
+    w = combine_weights(noisy, [noisy + 0.2, noisy + 0.01], var, radius=3)
+    assert np.isfinite(w).all()
+    np.testing.assert_array_equal(w[17:24, 27:34], 0.5)
+    assert w[40, 60, 1] > 0.9
+
+
+@pytest.mark.parametrize("max_mb", [0.01, 0.2, 64])
+def test_in_place_within_a_memory_bound_is_the_whole_image_result_bit_for_bit(max_mb: float) -> None:
+    truth, noisy, var = _case(61, 47, seed=4)
+    rng = np.random.default_rng(5)
+    outs = [(truth + rng.normal(0, s, truth.shape)).astype(np.float32) for s in (0.01, 0.03, 0.02)]
+    whole = combine(noisy, outs, var)
+    first = outs[0].copy()
+    combine_in_place(noisy, [first, *outs[1:]], var, max_mb * 2**20)
+    np.testing.assert_array_equal(first, whole)
+    first = outs[0].copy()
+    combine_in_place(noisy, [first, *outs[1:]], None, max_mb * 2**20)
+    np.testing.assert_array_equal(first, combine(noisy, outs, None))
+
+
+def test_bad_arguments() -> None:
+    _, noisy, var = _case(seed=6)
+    with pytest.raises(ValueError, match="no outputs"):
+        combine_weights(noisy, [], var)
+    with pytest.raises(ValueError, match="shapes differ"):
+        combine_weights(noisy, [noisy[:4]], var)
+    with pytest.raises(ValueError, match="lam"):
+        combine_weights(noisy, [noisy], var, lam=-1)
+    with pytest.raises(ValueError, match="no empty member"):
+        split_spec("fast+")
+    assert split_spec("fast + u-high") == ["fast", "u-high"]
+
+
+@pytest.fixture(scope="module")
+def two_models(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    folder = tmp_path_factory.mktemp("ckpts")
+    return write_tiny_checkpoint(folder / "flat.ckpt"), write_tiny_checkpoint(folder / "unet.ckpt", TINY_UNET, seed=1)
+
+
+def test_ensemble_denoiser_combines_its_members_outputs(two_models: tuple[Path, Path]) -> None:
+    """``A+B``: each member's network output, combined as :func:`combine` does, then guarded;
+    within a small memory bound (many tiles) the same to float32 rounding of the tiling."""
+    flat, unet = two_models
+    truth, noisy, var = _case(37, 29, seed=7)
+    members = [Denoiser(p).denoise_array(noisy, variance=var, keep_network=True).network for p in two_models]
+    expected = combine(noisy, members, var)
+    for max_mb in (1024, 2):
+        ens = Denoiser(f"{flat}+{unet}", max_memory_mb=max_mb)
+        got = ens.denoise_array(noisy, variance=var, keep_network=True)
+        np.testing.assert_allclose(got.network, expected, rtol=1e-4, atol=1e-5)
+        assert got.image.shape == noisy.shape and np.isfinite(got.image).all()
+    assert ens.name == "flat.ckpt+unet.ckpt" and ens.label == "flat+unet" and len(ens.members) == 2
+    assert ens.margin == max(m.margin for m in ens.members) and not ens.needs_aovs
+    plain = ens.denoise_array(noisy).image  # no variance: the mean, no guard
+    np.testing.assert_allclose(plain, combine(noisy, [Denoiser(p).denoise_array(noisy).image for p in two_models],
+                                              None), rtol=1e-4, atol=1e-5)
+    for shape in [(1, 1), (3, 17)]:
+        assert ens.denoise_array(np.ones((*shape, 3), np.float32)).image.shape == (*shape, 3)
+
+
+def test_ensemble_specs(tmp_path: Path, two_models: tuple[Path, Path]) -> None:
+    """A file whose name holds '+' is one model; an empty or missing member is a clear error."""
+    plus = write_tiny_checkpoint(tmp_path / "a+b.ckpt")
+    assert ensemble_members(plus) == [plus] and ensemble_members(None) == [None]
+    assert len(Denoiser(plus).members) == 1
+    with pytest.raises(DenoiserError, match="no empty member"):
+        Denoiser(f"{two_models[0]}+")
+    with pytest.raises(DenoiserError, match="nope"):
+        Denoiser(f"{two_models[0]}+{tmp_path / 'nope.ckpt'}")
+
+
+def test_denoise_cli_with_an_ensemble_and_halves(tmp_path: Path, two_models: tuple[Path, Path],
+                                                 capsys: pytest.CaptureFixture) -> None:
+    truth, _, _ = _case(16, 24, seed=8)
+    rng = np.random.default_rng(9)
+    for name in ("a", "b"):
+        write_exr(tmp_path / f"{name}.exr", (truth + rng.normal(0, SIGMA, truth.shape)).astype(np.float32),
+                  metadata={"spp": 8})
+    spec = f"{two_models[0]}+{two_models[1]}"
+    assert denoise_main(["--halves", str(tmp_path / "a.exr"), str(tmp_path / "b.exr"), str(tmp_path / "o.exr"),
+                         "--model", spec]) == 0
+    printed = json.loads(capsys.readouterr().out)
+    assert (tmp_path / "o.exr").exists() and "flat.ckpt+unet.ckpt" in json.dumps(printed)
+    assert denoise_main([str(tmp_path / "a.exr"), str(tmp_path / "o2.exr"), "--model", spec + "+"]) == 1
+    assert "no empty member" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("shape", [(20, 20), (64, 64), (300, 300), (1, 500), (500, 3)])
+@pytest.mark.parametrize("k", [2, 3])
+def test_scratch_per_pixel_stays_under_its_stated_bounds(shape: tuple[int, int], k: int) -> None:
+    """What combine_in_place plans its tiles and row blocks with (+ 16 KiB of Python objects)."""
+    rng = np.random.default_rng(10)
+    noisy, var = rng.random((*shape, 3), dtype=np.float32), rng.random((*shape, 3), dtype=np.float32) * 0.01
+    outs = [rng.random((*shape, 3), dtype=np.float32) for _ in range(k)]
+    pixels = shape[0] * shape[1]
+    assert _traced_peak(lambda: combine_weights(clean_render(noisy), outs, var)) <= \
+        weight_bytes_per_pixel(k) * pixels + 16384
+    w = combine_weights(noisy, outs, var)
+    assert w.dtype == np.float32
+    # a row block's result is scratch too (it is then copied into the first output): + 12 B/px
+    for block in (lambda: weighted_sum(outs, w), lambda: combine(noisy, outs, None)):
+        assert _traced_peak(block) + 12 * pixels <= COMBINE_BYTES_PER_PIXEL * pixels + 16384
