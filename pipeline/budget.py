@@ -31,16 +31,19 @@ import numpy as np
 from imaging.errors import DenoiserError
 from imaging.render import render_loaded
 from imaging.tiling import Core, plan_tiles
-from pipeline.denoise import WEIGHTS_DIR, Denoiser
+from pipeline.denoise import WEIGHTS_DIR, Denoiser, ensemble_members
+from pipeline.ensemble import SEPARATOR
 from pipeline.evaluation import RenderSettings, make_denoiser
 from pipeline.pareto import error_at_spp, metric_error
 
 DENOISE_SHARE = 1.0 / 3.0
 PROBE_SHARE = 0.05
 MAX_SPP = 1 << 16
-# Best quality first, as measured on ../shared/eval-scenes (docs/scoreboard.md): the shipped `fast`
-# is level with `balanced` at 16 spp and ahead at 128 spp, `high` last — and `fast` is the cheapest.
-PRESET_ORDER = ("fast", "balanced", "high")
+# Best quality first, as measured on ../shared/eval-scenes (docs/scoreboard.md): the ensemble
+# `fast+u-high` (pipeline/ensemble.py) is above `fast` at 4, 16 and 128 spp for 1.1-1.8x its time;
+# the shipped `fast` is level with `balanced` at 16 spp and ahead at 128 spp, `high` last — and
+# `fast` is the cheapest of the flat presets.
+PRESET_ORDER = ("fast+u-high", "fast", "balanced", "high")
 DEFAULT_CURVES = WEIGHTS_DIR / "tradeoff.json"
 
 Curves = dict[str, tuple[list[float], list[float]]]  # denoiser -> (spp, error)
@@ -196,16 +199,17 @@ def denoise_seconds(denoiser: Denoiser, height: int, width: int, side: int = 128
 
 
 def budget_candidates(model: str | None, settings: RenderSettings) -> dict[str, Denoiser]:
-    """Models to choose from: every preset with weights for ``auto``, else the one given."""
+    """Models to choose from: every entry of :data:`PRESET_ORDER` whose weights are shipped (an
+    ensemble's: all its members') for ``auto``, else the one given."""
     if model != "auto":
         den = make_denoiser(model, settings)
         return {den.label: den}
-    found = {name: WEIGHTS_DIR / f"{name}.ckpt" for name in PRESET_ORDER}
-    found = {name: path for name, path in found.items() if path.exists()}
+    found = {name: [WEIGHTS_DIR / f"{member}.ckpt" for member in ensemble_members(name)] for name in PRESET_ORDER}
+    found = {name: paths for name, paths in found.items() if all(path.exists() for path in paths)}
     if not found:
         raise BudgetError(f"--model auto: no preset weights in {WEIGHTS_DIR} "
-                          f"({', '.join(n + '.ckpt' for n in PRESET_ORDER)})")
-    return {name: make_denoiser(path, settings) for name, path in found.items()}
+                          f"({', '.join(n + '.ckpt' for n in PRESET_ORDER if len(ensemble_members(n)) == 1)})")
+    return {name: make_denoiser(SEPARATOR.join(map(str, paths)), settings) for name, paths in found.items()}
 
 
 def plan_run(budget_s: float, started: float, scene: Any, seed: int, aovs: Sequence[str],

@@ -121,6 +121,9 @@ def test_auto_candidates_are_the_presets_with_weights(tmp_path: Path,
     write_tiny_checkpoint(tmp_path / "fast.ckpt")
     write_tiny_checkpoint(tmp_path / "high.ckpt", seed=1)
     assert set(budget_candidates("auto", RenderSettings(scene="unused.xml", max_memory_mb=64))) == {"fast", "high"}
+    write_tiny_checkpoint(tmp_path / "u-high.ckpt", seed=2)  # completes the ensemble fast+u-high
+    found = budget_candidates("auto", RenderSettings(scene="unused.xml", max_memory_mb=64))
+    assert set(found) == {"fast+u-high", "fast", "high"} and len(found["fast+u-high"].members) == 2
 
 
 @pytest.mark.parametrize("args", [["--model", "auto"], ["--time-budget", "5", "--spp", "4"],
