@@ -76,7 +76,7 @@ def combine_weights(noisy: np.ndarray, outputs: Sequence[np.ndarray], variance: 
     w = np.empty((*smallest.shape, len(errors)), np.float32)
     norm = np.zeros_like(smallest)
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        for k, t in enumerate(errors):  # 1 / err scaled by the smallest: no overflow for tiny errors
+        for t in errors:  # 1 / err scaled by the smallest: no overflow for tiny errors
             np.divide(smallest, t, out=t)
             np.nan_to_num(t, copy=False, nan=1.0)  # 0/0: the outputs whose error is 0 share the weight
             norm += t
