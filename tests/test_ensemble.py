@@ -174,3 +174,21 @@ def test_scratch_per_pixel_stays_under_its_stated_bounds(shape: tuple[int, int],
     # a row block's result is scratch too (it is then copied into the first output): + 12 B/px
     for block in (lambda: weighted_sum(outs, w), lambda: combine(noisy, outs, None)):
         assert _traced_peak(block) + 12 * pixels <= COMBINE_BYTES_PER_PIXEL * pixels + 16384
+
+
+def test_ensemble_at_the_extremes_stays_finite(two_models: tuple[Path, Path]) -> None:
+    """NaN / inf / negative radiance, non-finite variance, all-zero and float16-max renders: a
+    finite, non-negative output; an all-zero render with zero variance stays zero."""
+    ens = Denoiser(f"{two_models[0]}+{two_models[1]}")
+    rng = np.random.default_rng(11)
+    x = rng.random((24, 40, 3)).astype(np.float32)
+    v = x * np.float32(0.01)
+    bad = x.copy()
+    bad[3, 4], bad[10, 10, 1], bad[20, 20] = np.nan, np.inf, -5
+    bad_var = v.copy()
+    bad_var[5, 5], bad_var[6, 6, 2] = np.inf, np.nan
+    for img, var in [(bad, v), (x, bad_var), (x * 6e4, v * 3.6e9), (x * 1e-8, v * 1e-16), (x[:1, :1], v[:1, :1])]:
+        out = ens.denoise_array(img, variance=var).image
+        assert out.shape == img.shape and np.isfinite(out).all() and (out >= 0).all()
+    zero = np.zeros_like(x)
+    np.testing.assert_array_equal(ens.denoise_array(zero, variance=zero).image, 0.0)
