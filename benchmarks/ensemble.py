@@ -2,7 +2,7 @@
 the measurement behind its window radius and ``lam``.
 
 Each image is denoised once by every member (the bare network, as ``render-and-denoise`` runs it:
-noise input from the halves); the outputs are then combined with every (radius, lam) setting and
+noise input from the halves); the outputs are then combined with every (radius, lam, power) setting and
 with their plain mean, and every candidate goes through the noise guard at the render's strength,
 as the default path does. OIDN colour-only denoises the same images. Two sets:
 
@@ -14,7 +14,7 @@ as the default path does. OIDN colour-only denoises the same images. Two sets:
 PSNR is tonemapped (:mod:`imaging.metrics`).
 
     python -m benchmarks.ensemble --data data/train256 --data data/media256 [--members fast,u-high]
-        [--settings 2:0.3,3:0.1,...] [--spp 4,16,32,64,128,256] [--eval-dir DIR] [--quick]
+        [--settings 3:0.3:1,3:0.3:2,...] [--spp 4,16,32,64,128,256] [--eval-dir DIR] [--quick]
 
 Writes benchmarks/results/ensemble.json and ensemble.md.
 """
@@ -35,17 +35,17 @@ from imaging.metrics import psnr
 from imaging.render import RenderResult
 from imaging.usage import COMMAND_ERRORS, OneLineParser, int_list, name_list, positive_int
 from pipeline.denoise import Denoiser
-from pipeline.ensemble import DEFAULT_LAMBDA, DEFAULT_RADIUS, combine
+from pipeline.ensemble import DEFAULT_LAMBDA, DEFAULT_POWER, DEFAULT_RADIUS, combine
 from pipeline.evaluation import render_input
 from pipeline.noise_guard import guard, strength_for
 from pipeline.oidn import oidn_denoise
 
-Setting = tuple[int, float]  # (window radius, lam)
+Setting = tuple[int, float, float]  # (window radius, lam, power)
 MEAN = "mean"
 
 
 def label(setting: Setting) -> str:
-    return f"r{setting[0]} lam{setting[1]:g}"
+    return f"r{setting[0]} lam{setting[1]:g} p{setting[2]:g}"
 
 
 def score_image(render: RenderResult, ref: np.ndarray, members: dict[str, Denoiser],
@@ -108,9 +108,9 @@ def markdown_table(summary: dict[str, Any], title: str) -> list[str]:
 
 
 def report(result: dict[str, Any]) -> str:
-    default = label((DEFAULT_RADIUS, DEFAULT_LAMBDA))
+    default = label((DEFAULT_RADIUS, DEFAULT_LAMBDA, DEFAULT_POWER))
     lines = [f"Source: `{result['command']}`; {result['date']}. Members {' + '.join(result['members'])}, "
-             f"combined with each setting (r: window radius, lam: the regulariser) or averaged ({MEAN}); "
+             f"combined with each setting (r: window radius, lam: the regulariser, p: the power) or averaged ({MEAN}); "
              f"the default setting is {default}.", ""]
     for key, title in (("validation", "validation (held-out procedural scenes; the tuning set)"),
                        ("eval", f"eval scenes (ceiling >= {CEILING_DB:g} dB)")):
@@ -124,8 +124,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--data", type=Path, action="append", default=[],
                    help="dataset folder (repeatable) whose 'val' scenes are the tuning set")
     p.add_argument("--members", type=name_list, default=("fast", "u-high"), help="comma-separated models")
-    p.add_argument("--settings", default="2:0.3,3:0,3:0.1,3:0.3,3:1,5:0.3",
-                   help="comma-separated RADIUS:LAM combinations")
+    p.add_argument("--settings", default="3:0.3:1,3:1:1,2:0.3:2,3:0:2,3:0.1:2,3:0.3:2,3:1:2,5:0.3:2",
+                   help="comma-separated RADIUS:LAM:POWER combinations")
     p.add_argument("--spp", type=int_list, default=(4, 16, 32, 64, 128, 256), help="eval scenes' spp")
     p.add_argument("--min-spp", type=positive_int, default=4, help="validation images from this spp up")
     p.add_argument("--scenes", type=name_list, help="comma-separated eval scene names (default: all)")
@@ -134,9 +134,9 @@ def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     args = p.parse_args(argv)
     try:
-        settings = [(int(r), float(lam)) for r, lam in (x.split(":") for x in args.settings.split(","))]
+        settings = [(int(r), float(lam), float(power)) for r, lam, power in (x.split(":") for x in args.settings.split(","))]
     except ValueError:
-        p.error(f"--settings: expected RADIUS:LAM,..., got {args.settings!r}")
+        p.error(f"--settings: expected RADIUS:LAM:POWER,..., got {args.settings!r}")
     names, spps = args.scenes, list(args.spp)
     if args.quick:
         names, spps = names or ["bitterli_cornell_box", "matpreview_plastic", "bitterli_veach_mis"], [4, 128]

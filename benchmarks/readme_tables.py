@@ -181,7 +181,7 @@ def ensemble(results: Results) -> list[str]:
     data = results.json("ensemble")
     lines = [caption("python -m benchmarks.ensemble", "benchmarks/results/ensemble.json", data,
                      f"Members {' + '.join(data['members'])}: each alone, their plain mean, and combined with "
-                     "each setting (r: window radius, lam: the regulariser of pipeline/ensemble.py); every "
+                     "each setting (r: window radius, lam: the regulariser, p: the power of pipeline/ensemble.py); every "
                      "candidate through the noise guard as the default path; OIDN colour-only on the same "
                      "images. Mean PSNR dB; validation: held-out procedural scenes (the tuning set); eval: "
                      "../shared/eval-scenes, ceiling >= 40 dB, seed 7."), ""]

@@ -18,7 +18,7 @@ def test_identity_members_score_as_the_noisy_input_in_every_column(tmp_path: Pat
     data = write_synthetic_dataset(tmp_path / "d", scenes=3, res=(32, 24), spp=(4, 16), val_scenes=(1, 2),
                                    variance=True)
     members = {"a": Denoiser(_checkpoint(tmp_path / "a.ckpt")), "b": Denoiser(_checkpoint(tmp_path / "b.ckpt"))}
-    settings = [(1, 0.0), (3, 0.3)]
+    settings = [(1, 0.0, 1.0), (3, 0.3, 2.0)]
     rows = list(validation_rows([data], members, settings, min_spp=4))
     assert len(rows) == 4 and {spp for spp, _ in rows} == {4, 16}
     for _, row in rows:

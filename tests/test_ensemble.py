@@ -192,3 +192,15 @@ def test_ensemble_at_the_extremes_stays_finite(two_models: tuple[Path, Path]) ->
         assert out.shape == img.shape and np.isfinite(out).all() and (out >= 0).all()
     zero = np.zeros_like(x)
     np.testing.assert_array_equal(ens.denoise_array(zero, variance=zero).image, 0.0)
+
+
+@pytest.mark.parametrize("power, first", [(1.0, 0.8), (2.0, 16 / 17)])
+def test_weights_are_powers_of_inverse_errors(power: float, first: float) -> None:
+    """A converged render (V = 0) and outputs 0.1 and 0.2 above it in each channel: errors 0.03
+    and 0.12, weights 4:1 with power 1, 16:1 with power 2."""
+    noisy = np.full((9, 11, 3), 0.5, np.float32)
+    zero = np.zeros_like(noisy)
+    w = combine_weights(noisy, [noisy + 0.1, noisy + 0.2], zero, power=power)
+    np.testing.assert_allclose(w[:, :, 0], first, rtol=1e-5)
+    with pytest.raises(ValueError, match="power"):
+        combine_weights(noisy, [noisy], zero, power=0)
