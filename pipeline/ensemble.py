@@ -28,7 +28,7 @@ import numpy as np
 
 from imaging.blocks import row_blocks
 from imaging.tiling import Tile, core_for_budget, run_windows
-from pipeline.noise_guard import box_mean_2d, clean_render
+from pipeline.noise_guard import box_mean_2d, channel_sum, clean_render
 
 DEFAULT_RADIUS = 3  # window 7x7 (benchmarks/ensemble.py)
 DEFAULT_LAMBDA = 0.3  # T_k + lam * V (benchmarks/ensemble.py)
@@ -56,7 +56,7 @@ def combine_weights(noisy: np.ndarray, outputs: Sequence[np.ndarray], variance: 
     var = np.asarray(variance, np.float32)
     with np.errstate(invalid="ignore", over="ignore"):
         positive = np.maximum(var, np.float32(0.0))
-    total = _channel_sum(positive)  # NaN or inf where a channel is
+    total = channel_sum(positive)  # NaN or inf where a channel is
     del positive
     unbounded = ~np.isfinite(total)
     anywhere_unbounded = bool(unbounded.any())
@@ -69,7 +69,7 @@ def combine_weights(noisy: np.ndarray, outputs: Sequence[np.ndarray], variance: 
     for out in outputs:
         change = np.subtract(out, noisy, dtype=np.float32)
         change *= change
-        t = box_mean_2d(_channel_sum(change), radius)
+        t = box_mean_2d(channel_sum(change), radius)
         del change
         t -= v
         np.maximum(t, np.float32(0.0), out=t)
@@ -97,14 +97,6 @@ def combine_weights(noisy: np.ndarray, outputs: Sequence[np.ndarray], variance: 
         t /= norm
         w[:, :, k] = t
     return w
-
-
-def _channel_sum(a: np.ndarray) -> np.ndarray:
-    """HxW sum of an HxWx3 float32 array's channels, as whole planes ((c0 + c1) + c2): numpy
-    reduces a short last axis slowly (:mod:`pipeline.noise_guard`)."""
-    total = np.add(a[:, :, 0], a[:, :, 1])
-    total += a[:, :, 2]
-    return total
 
 
 def combine(noisy: np.ndarray, outputs: Sequence[np.ndarray], variance: np.ndarray | None,

@@ -87,6 +87,14 @@ def _box_sum_1d(a: np.ndarray, radius: int, axis: int) -> np.ndarray:
     return out
 
 
+def channel_sum(a: np.ndarray) -> np.ndarray:
+    """HxW sum of an HxWx3 float32 array's channels, (c0 + c1) + c2 as whole planes: numpy reduces
+    a short last axis slowly, and works on a strided channel plane slowly."""
+    total = np.add(a[:, :, 0], a[:, :, 1])
+    total += a[:, :, 2]
+    return total
+
+
 def blend_weight(noisy: np.ndarray, denoised: np.ndarray, variance: np.ndarray,
                  radius: int = DEFAULT_RADIUS, strength: float = DEFAULT_STRENGTH) -> np.ndarray:
     """HxWx1 weight of the denoiser's output: ``min(1, strength * V / D)`` with V the window mean
@@ -103,14 +111,10 @@ def blend_weight(noisy: np.ndarray, denoised: np.ndarray, variance: np.ndarray,
     anywhere_unbounded = not finite.all()
     with np.errstate(invalid="ignore", over="ignore"):
         positive = np.maximum(var, np.float32(0.0))  # inf or NaN where unbounded: zeroed below
-    # channels summed as whole planes of the contiguous HxWx3 results (numpy reduces a short last
-    # axis slowly, and works on a strided channel plane slowly): (c0 + c1) + c2 as before
-    total = np.add(positive[:, :, 0], positive[:, :, 1])
-    total += positive[:, :, 2]
+    total = channel_sum(positive)
     change = np.subtract(denoised, noisy, dtype=np.float32)
     change *= change
-    d_total = np.add(change[:, :, 0], change[:, :, 1])
-    d_total += change[:, :, 2]
+    d_total = channel_sum(change)
     del positive, change
     unbounded = ~finite.all(axis=2) if anywhere_unbounded else None
     del finite

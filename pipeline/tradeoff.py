@@ -90,12 +90,13 @@ def model_labels(models: list[str]) -> dict[str, Path]:
     """
     labels: dict[str, Path] = {}
     for name in models:
-        paths = [resolve_model(member) for member in ensemble_members(name)]  # A+B: an ensemble
+        members = ensemble_members(name)  # A+B: an ensemble
+        paths = [resolve_model(member) for member in members]
         for path in paths:
             if not path.is_file():
                 raise DenoiserError(f"{path}: checkpoint not found")
         path = Path(SEPARATOR.join(map(str, paths)))
-        label = SEPARATOR.join(n if n in PRESETS else p.stem for n, p in zip(ensemble_members(name), paths))
+        label = SEPARATOR.join(n if n in PRESETS else p.stem for n, p in zip(members, paths))
         base, n = label, 2
         while label in labels or label in ("none", "oidn"):
             label, n = f"{base}-{n}", n + 1
