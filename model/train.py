@@ -28,7 +28,7 @@ from imaging.progress import ProgressBar, ProgressFactory
 from model.architectures import build_model
 from model.checkpoint import (Checkpoint, model_from_checkpoint, read_checkpoint, restore_optimizer,
                               restore_rng, save_checkpoint)
-from model.dataset import (ValImage, load_training_pairs, load_val_images, read_dataset_config,
+from model.dataset import (SceneRecord, ValImage, load_training_pairs, load_val_images, read_dataset_config,
                            read_manifest)
 from model.grow import grow_model
 from model.noise_input import drop_noise
@@ -138,6 +138,15 @@ def _check_data_config(data_config: dict[str, Any], ckpt: Checkpoint | None, con
                                f"({', '.join(f'{k}: {saved.get(k)!r} -> {data_config.get(k)!r}' for k in diff)})")
 
 
+def _at_most(record: SceneRecord, max_spp: int, root: Path) -> SceneRecord:
+    """``record`` with its renders of more than ``max_spp`` spp left out (none left: an error)."""
+    spp = tuple(s for s in record.spp if s <= max_spp)
+    if not spp:
+        raise DatasetError(f"{root}: scene {record.index} has no render at <= {max_spp} spp "
+                           f"(it has {', '.join(map(str, record.spp))})")
+    return dataclasses.replace(record, spp=spp)
+
+
 def _check_scene_counts(data_config: dict[str, Any], ckpt: Checkpoint | None, config: TrainConfig) -> None:
     """A resumed run must train on the scenes it started with: a dataset that has grown (or lost
     scenes) since would change the run without a trace. Checkpoints without the record pass."""
@@ -203,6 +212,8 @@ class _Run:
             this = read_dataset_config(root)
             _check_data_config(this, ckpt if k == 0 else None, config)
             records = [r for r in read_manifest(root) if not config.max_scenes or r.index < config.max_scenes]
+            if config.max_spp:
+                records = [_at_most(r, config.max_spp, root) for r in records]
             train = [r for r in records if r.split == "train"]
             val = [r for r in records if r.split == "val"]
             if not train:

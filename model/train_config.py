@@ -60,6 +60,8 @@ class TrainConfig:
     process CPU seconds over all sittings — runs of different cost compared at equal CPU time.
     ``converged_pairs``: besides each scene's noisy renders, train on (reference, reference) — a
     converged input must come out unchanged (off in the paper; see docs/training.md).
+    ``max_spp`` > 0: train and validate on the renders of at most that many spp only (a specialist
+    for noisy input, e.g. an ensemble member; the best checkpoint is chosen on those levels too).
     """
 
     data: str
@@ -78,6 +80,7 @@ class TrainConfig:
     gradient_weight: float = 0.1
     log_loss_eps: float = 0.0
     max_scenes: int = 0
+    max_spp: int = 0
     extra_data: tuple[str, ...] = ()
     cpu_budget_s: float = 0.0
     grad_clip: float | None = None
@@ -108,7 +111,8 @@ class TrainConfig:
             value = getattr(self, name)
             if not isinstance(value, int) or isinstance(value, bool) or value < 1:
                 raise ConfigError(f"{name} must be a positive integer, got {value!r}")
-        for name in ("val_every", "threads", "seed", "lr_warmup", "lr_cosine_steps", "max_scenes"):
+        for name in ("val_every", "threads", "seed", "lr_warmup", "lr_cosine_steps", "max_scenes",
+                     "max_spp"):
             value = getattr(self, name)
             if not isinstance(value, int) or isinstance(value, bool) or value < 0:
                 raise ConfigError(f"{name} must be an integer >= 0, got {value!r}")
