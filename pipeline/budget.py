@@ -32,7 +32,6 @@ from imaging.errors import DenoiserError
 from imaging.render import render_loaded
 from imaging.tiling import Core, plan_tiles
 from pipeline.denoise import WEIGHTS_DIR, Denoiser, ensemble_members
-from pipeline.ensemble import SEPARATOR
 from pipeline.evaluation import RenderSettings, make_denoiser
 from pipeline.pareto import error_at_spp, metric_error
 
@@ -209,7 +208,7 @@ def budget_candidates(model: str | None, settings: RenderSettings) -> dict[str, 
     if not found:
         raise BudgetError(f"--model auto: no preset weights in {WEIGHTS_DIR} "
                           f"({', '.join(n + '.ckpt' for n in PRESET_ORDER if len(ensemble_members(n)) == 1)})")
-    return {name: make_denoiser(SEPARATOR.join(map(str, paths)), settings) for name, paths in found.items()}
+    return {name: make_denoiser(paths, settings) for name, paths in found.items()}
 
 
 def plan_run(budget_s: float, started: float, scene: Any, seed: int, aovs: Sequence[str],

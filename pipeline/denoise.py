@@ -8,6 +8,7 @@ normals=...)`` returns the same kind of object it was given) but runs on the CPU
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -52,10 +53,14 @@ def resolve_model(name: str | Path | None) -> Path:
     return Path(name)
 
 
-def ensemble_members(spec: str | Path | None) -> list[str | Path | None]:
+def ensemble_members(spec: str | Path | Sequence[str | Path] | None) -> list[str | Path | None]:
     """The models of a ``--model`` value: ``A+B[+...]`` (:mod:`pipeline.ensemble`) names several,
-    unless it is an existing file's path; anything else is one. Raises :class:`DenoiserError`
-    for an empty member."""
+    unless it is an existing file's path; a list or tuple names its items; anything else is one.
+    Raises :class:`DenoiserError` for an empty member."""
+    if isinstance(spec, (list, tuple)):
+        if not spec or not all(str(m).strip() for m in spec):
+            raise DenoiserError(f"model ensemble {list(map(str, spec))!r}: expected models, no empty member")
+        return list(spec)
     if spec is None or SEPARATOR not in str(spec) or Path(spec).exists():
         return [spec]
     try:
@@ -126,7 +131,7 @@ class Denoiser:
     """A trained model ready to denoise HxWx3 linear radiance on the CPU.
 
     ``checkpoint``: a file written by ``train`` or a preset name (:func:`resolve_model`; default:
-    the shipped ``model/weights/default.ckpt``); ``A+B[+...]`` an ensemble: every model denoises
+    the shipped ``model/weights/default.ckpt``); ``A+B[+...]`` or a list of them an ensemble: every model denoises
     the image and :mod:`pipeline.ensemble` combines their outputs (weighted by their estimated
     error where a variance is given, else their mean) before the guard. ``path``, ``model``,
     ``config``, ``meta``, ``net`` and ``dtype`` are the first model's; ``members`` holds them all.
@@ -152,7 +157,7 @@ class Denoiser:
     (docs/speed.md).
     """
 
-    def __init__(self, checkpoint: str | Path | None = None,
+    def __init__(self, checkpoint: str | Path | Sequence[str | Path] | None = None,
                  max_memory_mb: float = DEFAULT_MAX_MEMORY_MB, threads: int | None = None,
                  optimize: bool = True, skip_below: float | None = None, precision: str = "auto",
                  flips: int = 1) -> None:

@@ -72,7 +72,7 @@ class RenderSettings:
         return load_scene(prepare(self.scene, self.resolution, aovs, self.params))
 
 
-def make_denoiser(model: str | Path | None, settings: RenderSettings) -> Denoiser:
+def make_denoiser(model: str | Path | Sequence[str | Path] | None, settings: RenderSettings) -> Denoiser:
     """The denoiser of ``model`` with the settings' memory bound, precision, flips and, with the
     halves, skipping."""
     return Denoiser(model, max_memory_mb=settings.max_memory_mb, precision=settings.precision,

@@ -82,25 +82,24 @@ class Point:
         return metric_error(metric, getattr(self, metric))
 
 
-def model_labels(models: list[str]) -> dict[str, Path]:
+def model_labels(models: list[str]) -> dict[str, Path | list[Path]]:
     """Label -> checkpoint for each ``--models`` entry (preset name, else file stem; made unique;
-    an ensemble ``A+B``: its members' labels and paths joined by ``+``).
+    an ensemble ``A+B``: its members' labels joined by ``+``, the list of their paths).
 
     Raises :class:`DenoiserError` naming the file when a preset's weights or a file are missing.
     """
-    labels: dict[str, Path] = {}
+    labels: dict[str, Path | list[Path]] = {}
     for name in models:
         members = ensemble_members(name)  # A+B: an ensemble
         paths = [resolve_model(member) for member in members]
         for path in paths:
             if not path.is_file():
                 raise DenoiserError(f"{path}: checkpoint not found")
-        path = Path(SEPARATOR.join(map(str, paths)))
         label = SEPARATOR.join(n if n in PRESETS else p.stem for n, p in zip(members, paths))
         base, n = label, 2
         while label in labels or label in ("none", "oidn"):
             label, n = f"{base}-{n}", n + 1
-        labels[label] = path
+        labels[label] = paths[0] if len(paths) == 1 else paths
     return labels
 
 

@@ -133,10 +133,16 @@ def test_ensemble_denoiser_combines_its_members_outputs(two_models: tuple[Path, 
 
 
 def test_ensemble_specs(tmp_path: Path, two_models: tuple[Path, Path]) -> None:
-    """A file whose name holds '+' is one model; an empty or missing member is a clear error."""
+    """A file whose name holds '+' is one model; a list names its members (a '+' in a path kept);
+    an empty or missing member is a clear error."""
     plus = write_tiny_checkpoint(tmp_path / "a+b.ckpt")
     assert ensemble_members(plus) == [plus] and ensemble_members(None) == [None]
     assert len(Denoiser(plus).members) == 1
+    assert ensemble_members([plus, two_models[0]]) == [plus, two_models[0]]
+    assert [m.path for m in Denoiser([plus, two_models[1]]).members] == [plus, two_models[1]]
+    for empty in ([], [plus, ""]):
+        with pytest.raises(DenoiserError, match="no empty member"):
+            Denoiser(empty)
     with pytest.raises(DenoiserError, match="no empty member"):
         Denoiser(f"{two_models[0]}+")
     with pytest.raises(DenoiserError, match="nope"):

@@ -88,7 +88,7 @@ def test_ensemble_labels_join_their_members(tmp_path: Path, monkeypatch: pytest.
     monkeypatch.setattr(denoise, "WEIGHTS_DIR", tmp_path)
     fast, mine = write_tiny_checkpoint(tmp_path / "fast.ckpt"), write_tiny_checkpoint(tmp_path / "mine.ckpt")
     labels = model_labels(["fast", f"fast+{mine}"])
-    assert labels == {"fast": fast, "fast+mine": Path(f"{fast}+{mine}")}
+    assert labels == {"fast": fast, "fast+mine": [fast, mine]}
     assert len(denoise.Denoiser(labels["fast+mine"]).members) == 2
     with pytest.raises(DenoiserError, match="nope.ckpt: checkpoint not found"):
         model_labels([f"fast+{tmp_path / 'nope.ckpt'}"])
