@@ -33,7 +33,8 @@ DEFAULT_MAX_MEMORY_MB = 1024
 
 def resolve_model(name: str | Path | None) -> Path:
     """Checkpoint file of a ``--model`` value: None -> the shipped default, a preset name (``fast``,
-    ``balanced``, ``high``) -> ``model/weights/<name>.ckpt``, anything else -> a path.
+    ``balanced``, ``high``) -> ``model/weights/<name>.ckpt``, the name of another shipped checkpoint
+    (``u-balanced-noise``: a bare name, no such file here) -> that file, anything else -> a path.
 
     Raises :class:`DenoiserError` naming the file when the default or a preset's weights are missing.
     """
@@ -44,13 +45,13 @@ def resolve_model(name: str | Path | None) -> Path:
             raise DenoiserError(f"{DEFAULT_WEIGHTS}: no default weights are shipped yet; pass --model "
                                 "PATH (a checkpoint written by `train`)")
         return DEFAULT_WEIGHTS
-    if str(name) in PRESETS and not Path(name).exists():
-        path = WEIGHTS_DIR / f"{name}.ckpt"
-        if not path.exists():
-            raise DenoiserError(f"{path}: no weights for model preset '{name}' yet (train them, or pass "
-                                "a checkpoint file)")
-        return path
-    return Path(name)
+    path = WEIGHTS_DIR / f"{name}.ckpt"
+    if Path(name).exists() or Path(name).name != str(name):
+        return Path(name)
+    if str(name) in PRESETS and not path.exists():
+        raise DenoiserError(f"{path}: no weights for model preset '{name}' yet (train them, or pass "
+                            "a checkpoint file)")
+    return path if path.exists() else Path(name)
 
 
 def ensemble_members(spec: str | Path | Sequence[str | Path] | None) -> list[str | Path | None]:

@@ -154,3 +154,23 @@ def test_bad_arguments_raise_clear_errors(tmp_path: Path, ckpt: Path) -> None:
         Denoiser(ckpt, max_memory_mb=0)
     with pytest.raises(DenoiserError, match="HxWx3"):
         Denoiser(ckpt).denoise_array(np.zeros((4, 4), np.float32))
+
+
+def test_resolve_model_finds_shipped_checkpoints_by_name(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A preset or another shipped checkpoint's bare name -> model/weights/NAME.ckpt; a file of that
+    name in the working folder, or any path, is taken as given; a preset without weights is an error."""
+    from pipeline import denoise
+    from pipeline.denoise import resolve_model
+    weights = tmp_path / "weights"
+    weights.mkdir()
+    monkeypatch.setattr(denoise, "WEIGHTS_DIR", weights)
+    monkeypatch.chdir(tmp_path)
+    special = write_tiny_checkpoint(weights / "my-special.ckpt")
+    assert resolve_model("my-special") == special
+    assert Denoiser("my-special").path == special
+    assert resolve_model("elsewhere/my-special") == Path("elsewhere/my-special")
+    assert resolve_model("unknown") == Path("unknown")
+    (tmp_path / "my-special").write_bytes(b"")
+    assert resolve_model("my-special") == Path("my-special")  # a file here wins
+    with pytest.raises(DenoiserError, match="no weights for model preset 'fast'"):
+        resolve_model("fast")
