@@ -141,6 +141,20 @@ def read_checkpoint(path: str | Path) -> Checkpoint:
     return Checkpoint(path, header, tensors)
 
 
+def strip_optimizer(src: str | Path, dst: str | Path) -> None:
+    """Write ``src`` to ``dst`` without the optimiser state (what a shipped checkpoint keeps: the
+    weights, the RNG state and the header as trained, its ``optimizer`` entry null), atomically.
+    Continuing from the result is a warm start (``train --init-from``) with a fresh optimiser."""
+    ckpt = read_checkpoint(src)
+    tensors = {k: v for k, v in ckpt.tensors.items() if not k.startswith("optim/")}
+    header = {**ckpt.header, "optimizer": None}
+    try:
+        with atomic_path(Path(dst)) as tmp:
+            safetensors.torch.save_file(tensors, str(tmp), metadata={_META_KEY: json.dumps(header)})
+    except OSError as exc:
+        raise CheckpointError(f"{dst}: cannot write ({exc.strerror or exc})") from None
+
+
 def model_from_checkpoint(ckpt: Checkpoint) -> torch.nn.Module:
     """Rebuild the network from the header's model config and load its weights (strict)."""
     try:

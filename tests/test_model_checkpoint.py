@@ -11,7 +11,7 @@ import torch
 from imaging.errors import CheckpointError
 from model.architectures import build_model
 from model.checkpoint import (code_version, load_model, read_checkpoint, restore_optimizer, restore_rng,
-                              save_checkpoint)
+                              save_checkpoint, strip_optimizer)
 from model.config import ModelConfig
 from model.loss import denoising_loss
 
@@ -63,6 +63,25 @@ def test_optimizer_and_rng_restored(tmp_path: Path) -> None:
     torch.manual_seed(999)
     restore_rng(ckpt)
     torch.testing.assert_close(torch.rand(3), expected_draw, rtol=0, atol=0)
+
+
+def test_strip_optimizer_keeps_weights_and_header(tmp_path: Path) -> None:
+    """A shipped copy: every model and RNG tensor and the header as written (code version, configs,
+    step, extra), the optimiser's tensors and header entry gone; a missing source is a clear error."""
+    model, opt = _trained()
+    src, dst = tmp_path / "last.ckpt", tmp_path / "shipped.ckpt"
+    save_checkpoint(src, model, step=5, optimizer=opt, train_config={"lr": 0.01}, extra={"best_psnr": 31.0})
+    strip_optimizer(src, dst)
+    before, after = read_checkpoint(src), read_checkpoint(dst)
+    assert before.prefixed("optim/") and not after.prefixed("optim/")
+    assert set(after.tensors) == {k for k in before.tensors if not k.startswith("optim/")}
+    for key, tensor in after.tensors.items():
+        torch.testing.assert_close(tensor, before.tensors[key], rtol=0, atol=0)
+    assert after.header == {**before.header, "optimizer": None} and before.header["optimizer"] is not None
+    assert dst.stat().st_size < src.stat().st_size
+    with pytest.raises(CheckpointError, match="checkpoint not found"):
+        strip_optimizer(tmp_path / "nope.ckpt", tmp_path / "out.ckpt")
+    assert not (tmp_path / "out.ckpt").exists()
 
 
 def test_file_is_plain_safetensors(tmp_path: Path) -> None:
