@@ -73,7 +73,8 @@ def ensemble_members(spec: str | Path | Sequence[str | Path] | None) -> list[str
 @dataclass
 class Network:
     """One loaded checkpoint: its file, training module, config, metadata, the network that runs
-    (folded unless ``optimize`` is off), its float format and its receptive radius in pixels."""
+    (folded unless ``optimize`` is off), its float format and its receptive radius in pixels.
+    ``max_spp``: the most spp of the renders it was trained on (``train --max-spp``; 0: all)."""
 
     path: Path
     model: Any
@@ -97,6 +98,14 @@ class Network:
         net = prepare_for_inference(model, dtype) if optimize else model
         return cls(path, model, config, meta, net, dtype, receptive_radius(config))
 
+    @property
+    def max_spp(self) -> int:
+        return int((self.meta.get("train_config") or {}).get("max_spp") or 0)
+
+    def covers(self, spp: int | None) -> bool:
+        """True unless it was trained on renders of fewer spp than ``spp`` only (None: unknown)."""
+        return spp is None or not self.max_spp or spp <= self.max_spp
+
 
 @dataclass
 class DenoiseResult:
@@ -110,6 +119,7 @@ class DenoiseResult:
     guard_weight: float | None = None  # noise guard's mean weight of the denoiser (None: no guard)
     guard_map: np.ndarray | None = None  # HxW float32 in [0, 1]: that weight per pixel
     network: np.ndarray | None = None  # the network's output before the guard (``keep_network``)
+    models: tuple[str, ...] = ()  # the checkpoints' stems that ran (an ensemble: :meth:`Denoiser.active`)
 
 
 COUNT_BYTES_PER_PIXEL = 4  # count_invalid: one boolean mask of a row block's 3 channels at a time
@@ -219,14 +229,19 @@ class Denoiser:
         """True when a model consumes albedo and normals (the render must provide them)."""
         return any(m.config.aux_inputs for m in self.members)
 
+    def active(self, spp: int | None) -> list[Network]:
+        """The members that denoise a render of ``spp`` samples per pixel (None: unknown): those
+        trained on renders of that many spp (:attr:`Network.max_spp`), or all if none was."""
+        return [m for m in self.members if m.covers(spp)] or list(self.members)
+
     def ensemble_record(self) -> dict[str, Any]:
         """For an ensemble, what a run's record adds beside the first model's config:
-        ``{"members": [{"path", "sha256", "step", "precision", "config"}...]}``; ``{}`` for one model."""
+        ``{"members": [{"path", "sha256", "step", "precision", "max_spp", "config"}...]}``; ``{}`` for one model."""
         if len(self.members) == 1:
             return {}
         return {"members": [{"path": str(m.path), "sha256": file_sha256(m.path), "step": m.meta.get("step"),
-                             "precision": str(m.dtype).removeprefix("torch."), "config": m.config.to_dict()}
-                            for m in self.members]}
+                             "precision": str(m.dtype).removeprefix("torch."), "max_spp": m.max_spp,
+                             "config": m.config.to_dict()} for m in self.members]}
 
     @property
     def max_bytes(self) -> float:
@@ -263,14 +278,16 @@ class Denoiser:
 
     def denoise_array(self, rgb: np.ndarray, albedo: np.ndarray | None = None,
                       normals: np.ndarray | None = None, variance: np.ndarray | None = None,
-                      strength: float = DEFAULT_STRENGTH, keep_network: bool = False) -> DenoiseResult:
+                      strength: float = DEFAULT_STRENGTH, keep_network: bool = False,
+                      spp: int | None = None) -> DenoiseResult:
         """Denoise HxWx3 linear radiance (any float dtype) with :func:`model.infer.denoise_image`.
 
         ``variance``: HxWx3 variance of ``rgb``'s Monte Carlo estimate (a render made of two
         halves, :func:`imaging.render.render_loaded`); given, the output is blended with the
         render where the render's noise does not explain the change (:mod:`pipeline.noise_guard`).
         ``keep_network``: also return the network's output before that blend (``network``).
-        None of the inputs is changed or copied whole.
+        ``spp``: the render's samples per pixel, where known: an ensemble runs only the members
+        trained on such renders (:meth:`active`). None of the inputs is changed or copied whole.
         """
         from model.infer import denoise_image
 
@@ -298,9 +315,10 @@ class Denoiser:
                                  variance=variance, skip_below=self.skip_below, max_bytes=self.max_bytes,
                                  flips=self.flips)
 
-        out = run(self.members[0])
-        if len(self.members) > 1:  # each further output is one more image beside ``out``
-            combine_in_place(rgb, [out, *(run(m) for m in self.members[1:])], variance, self.max_bytes)
+        members = self.active(spp)
+        out = run(members[0])
+        if len(members) > 1:  # each further output is one more image beside ``out``
+            combine_in_place(rgb, [out, *(run(m) for m in members[1:])], variance, self.max_bytes)
         network = None
         if keep_network:  # the guard changes ``out`` in place
             network = out.copy() if variance is not None else out
@@ -310,14 +328,15 @@ class Denoiser:
             guard_in_place(rgb, out, variance, weights, self.max_bytes, strength=strength)
             weight = float(weights.mean())
         return DenoiseResult(out, nonfinite, negative, time.perf_counter() - start, count[0], weight,
-                             None if weights is None else weights[:, :, 0], network)
+                             None if weights is None else weights[:, :, 0], network,
+                             tuple(m.path.stem for m in members))
 
     def denoise_render(self, render: RenderResult, keep_network: bool = False) -> DenoiseResult:
         """Denoise a render of :mod:`imaging.render` with what it carries: its AOVs and, for a
         render made in two halves, its variance (the model's noise input, if it has one) and the
         noise guard at the strength for its spp. ``keep_network`` as in :meth:`denoise_array`."""
         return self.denoise_array(render.rgb, render.aovs.get("albedo"), render.aovs.get("sh_normal"),
-                                  render.variance, strength_for(render.spp), keep_network)
+                                  render.variance, strength_for(render.spp), keep_network, render.spp)
 
     def __call__(self, noisy: Any, albedo: Any = None, normals: Any = None) -> Any:
         """Denoise a numpy array, torch tensor, ``mi.TensorXf`` or ``mi.Bitmap`` (HxWx3, or HxWx4

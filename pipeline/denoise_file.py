@@ -163,12 +163,13 @@ def denoise_file(cfg: DenoiseFileConfig) -> dict[str, Any]:
     variance = image.variance if cfg.noise_guard else None
     strength = strength_for(spp) if spp else DEFAULT_STRENGTH
     result = denoiser.denoise_array(image.rgb, image.albedo, image.normals, variance=variance,
-                                    strength=strength)
+                                    strength=strength, spp=spp or None)
     layout = _write(cfg, image, result.image, denoiser.name)
     out: dict[str, Any] = {
         "input": cfg.inputs[0] if len(cfg.inputs) == 1 else list(cfg.inputs), "output": cfg.output,
         "layer": image.layer.name if image.layer else None, "layout": layout,
-        "denoise_s": result.seconds, "model": denoiser.name, "precision": denoiser.precision,
+        "denoise_s": result.seconds, "model": denoiser.name, "models_run": list(result.models),
+        "precision": denoiser.precision,
         "flips": denoiser.flips, "nonfinite_values": result.nonfinite,
         "negative_values": result.negative,
         "noise_guard": None if variance is None else {

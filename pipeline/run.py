@@ -198,7 +198,7 @@ def _metrics(run: _Run) -> dict[str, Any]:
     metrics: dict[str, Any] = {
         "scene": str(cfg.scene), "spp": run.spp, "resolution": [w, h], "seed": cfg.seed,
         "model": {"name": denoiser.name, "sha256": denoiser.sha256, "precision": denoiser.precision,
-                  "flips": denoiser.flips, "config": denoiser.config.to_dict(),
+                  "flips": denoiser.flips, "config": denoiser.config.to_dict(), "models_run": list(result.models),
                   **denoiser.ensemble_record()},
         "mitsuba": metadata.version("mitsuba"), "variant": noisy.variant, "timings": run.timings,
         "sanitized": {"render_nonfinite_pixels": noisy.nonfinite, "denoiser_nonfinite_values":

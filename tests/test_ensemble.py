@@ -132,6 +132,26 @@ def test_ensemble_denoiser_combines_its_members_outputs(two_models: tuple[Path, 
         assert ens.denoise_array(np.ones((*shape, 3), np.float32)).image.shape == (*shape, 3)
 
 
+def test_a_member_trained_for_low_spp_runs_only_there(tmp_path: Path, two_models: tuple[Path, Path]) -> None:
+    """A member whose checkpoint was trained on renders of <= 8 spp (``train --max-spp 8``) joins
+    the ensemble at 1-8 spp and where the spp is unknown; above, the others run alone, exactly as
+    without it; an ensemble of such members only runs them all."""
+    flat, _ = two_models
+    low = write_tiny_checkpoint(tmp_path / "low.ckpt", TINY_UNET, seed=3, max_spp=8)
+    truth, noisy, var = _case(21, 19, seed=5)
+    ens, alone = Denoiser([flat, low]), Denoiser(flat)
+    assert [m.max_spp for m in ens.members] == [0, 8] and ens.ensemble_record()["members"][1]["max_spp"] == 8
+    for spp in (1, 8, None):
+        got = ens.denoise_array(noisy, variance=var, spp=spp)
+        assert got.models == ("flat", "low")
+    np.testing.assert_array_equal(ens.denoise_array(noisy, variance=var, spp=4).image,
+                                  ens.denoise_array(noisy, variance=var).image)
+    high = ens.denoise_array(noisy, variance=var, strength=2.0, spp=16)
+    assert high.models == ("flat",)
+    np.testing.assert_array_equal(high.image, alone.denoise_array(noisy, variance=var, strength=2.0).image)
+    assert Denoiser([low, low]).denoise_array(noisy, spp=64).models == ("low", "low")
+
+
 def test_ensemble_specs(tmp_path: Path, two_models: tuple[Path, Path]) -> None:
     """A file whose name holds '+' is one model; a list names its members (a '+' in a path kept);
     an empty or missing member is a clear error."""
@@ -161,6 +181,11 @@ def test_denoise_cli_with_an_ensemble_and_halves(tmp_path: Path, two_models: tup
                          "--model", spec]) == 0
     printed = json.loads(capsys.readouterr().out)
     assert (tmp_path / "o.exr").exists() and "flat.ckpt+unet.ckpt" in json.dumps(printed)
+    assert printed["models_run"] == ["flat", "unet"] and printed["noise_guard"]["spp"] == 16
+    low = write_tiny_checkpoint(tmp_path / "low.ckpt", TINY_UNET, seed=3, max_spp=8)  # the halves make 16 spp
+    assert denoise_main(["--halves", str(tmp_path / "a.exr"), str(tmp_path / "b.exr"), str(tmp_path / "o3.exr"),
+                         "--model", f"{two_models[0]}+{low}"]) == 0
+    assert json.loads(capsys.readouterr().out)["models_run"] == ["flat"]
     assert denoise_main([str(tmp_path / "a.exr"), str(tmp_path / "o2.exr"), "--model", spec + "+"]) == 1
     assert "no empty member" in capsys.readouterr().err
 
