@@ -168,7 +168,7 @@ def tradeoff_parser() -> OneLineParser:
                    help="comma-separated spp levels (1,2,4,...,1024)")
     p.add_argument("--models", type=name_list, default=None,
                    help="comma-separated presets (model/weights/<name>.ckpt), checkpoint paths or "
-                        "ensembles A+B (fast,balanced,high,u-high,fast+u-high)")
+                        "ensembles A+B (fast,balanced,high,u-high,fast+u-high,fast+u-high-lowspp)")
     p.add_argument("--compare", choices=["oidn"], action="append", default=[],
                    help="also measure OIDN colour-only (needs pyoidn)")
     p.add_argument("--repeat", type=positive_int, default=3, help="timing repeats, median kept (3)")

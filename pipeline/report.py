@@ -244,7 +244,8 @@ def _run_section(page: Page, metrics: dict[str, Any]) -> None:
     settings = [["scene", metrics["scene"]], ["resolution", "x".join(map(str, metrics["resolution"]))],
                 ["spp", metrics["spp"]], ["seed", metrics["seed"]],
                 ["reference", _reference_text(metrics.get("reference"))],
-                ["model", f"{model['name']} (sha256 {model['sha256'][:12]})"],
+                ["model", f"{model['name']} (sha256 {model['sha256'][:12]})"
+                          + (f"; ran: {' + '.join(model['models_run'])}" if len(model.get("members", ())) > 1 else "")],
                 ["Mitsuba", f"{metrics['mitsuba']} {metrics['variant']}"],
                 ["noise guard", "off (one-piece render)" if not guard else
                  f"mean weight {guard['mean_weight']:.3f}, strength {guard['strength']:g}, "

@@ -28,8 +28,9 @@ from pipeline.evaluation import (OIDN, Output, RenderSettings, aovs_for, check_r
 from pipeline.pareto import ERROR_OF_METRIC, equal_quality, metric_error, pareto_front
 
 DEFAULT_SPP = (1, 2, 4, 8, 16, 32, 64, 128, 256, 512, 1024)
-DEFAULT_MODELS = ("fast", "balanced", "high", "u-high", "fast+u-high")  # the flat presets, the fastest
-# good multi-scale net and the best ensemble (docs/scoreboard.md)
+# the flat presets, the fastest good multi-scale net, the best ensemble and the best one for 1-16 spp
+# (`fast` alone above; docs/scoreboard.md)
+DEFAULT_MODELS = ("fast", "balanced", "high", "u-high", "fast+u-high", "fast+u-high-lowspp")
 METRICS = ("psnr", "relmse", "flip")
 
 

@@ -75,6 +75,19 @@ def test_reference_file_and_no_reference(tmp_path: Path, demo_run: Path, ckpt: P
     assert json.loads((bare / "config.json").read_text())["compare_oidn"] is False
 
 
+def test_an_ensemble_runs_its_low_spp_member_only_at_low_spp(tmp_path: Path, ckpt: Path) -> None:
+    """render-and-denoise --model A+B with B trained for <= 8 spp: both run at 2 spp, A alone at
+    32; metrics.json and the report say which ran."""
+    low = write_tiny_checkpoint(tmp_path / "low.ckpt", seed=2, max_spp=8)
+    for spp, ran in ((2, ["tiny", "low"]), (32, ["tiny"])):
+        out = tmp_path / f"s{spp}"
+        assert main([str(DEMO), "--spp", str(spp), "--res", "16", "16", "--model", f"{ckpt}+{low}", "--quiet",
+                     "--no-compare", "--out", str(out)]) == 0
+        model = json.loads((out / "metrics.json").read_text())["model"]
+        assert model["models_run"] == ran and [m["max_spp"] for m in model["members"]] == [0, 8]
+        assert f"ran: {' + '.join(ran)}" in (out / "report.html").read_text()
+
+
 def test_noise_guard_on_by_default_and_off_on_request(tmp_path: Path, demo_run: Path, ckpt: Path) -> None:
     guarded = json.loads((demo_run / "metrics.json").read_text())["noise_guard"]
     assert 0.0 <= guarded["mean_weight"] <= 1.0 and guarded["strength"] >= 1.0
