@@ -4,7 +4,9 @@ the measurement behind its window radius and ``lam``.
 Each image is denoised once by every member (the bare network, as ``render-and-denoise`` runs it:
 noise input from the halves); the outputs are then combined with every (radius, lam, power) setting and
 with their plain mean, and every candidate goes through the noise guard at the render's strength,
-as the default path does. OIDN colour-only denoises the same images. Two sets:
+as the default path does. Every member runs at every spp: this measures the combination itself, not
+an ensemble's spp gate (a member trained for fewer spp sits out, ``Denoiser.active``; the scoreboard
+runs that path). OIDN colour-only denoises the same images. Two sets:
 
 * ``validation`` (the tuning set): the held-out ``val`` scenes of ``--data`` folders (renders with
   a variance layer at 4-256 spp; references at the dataset's reference spp).
