@@ -103,8 +103,9 @@ class Network:
         return int((self.meta.get("train_config") or {}).get("max_spp") or 0)
 
     def covers(self, spp: int | None) -> bool:
-        """True unless it was trained on renders of fewer spp than ``spp`` only (None: unknown)."""
-        return spp is None or not self.max_spp or spp <= self.max_spp
+        """True if it was trained on renders of ``spp`` samples per pixel: always for a model trained
+        on every spp; for one trained on at most ``max_spp``, only where ``spp`` is known to be within."""
+        return not self.max_spp or (spp is not None and spp <= self.max_spp)
 
 
 @dataclass
@@ -231,7 +232,8 @@ class Denoiser:
 
     def active(self, spp: int | None) -> list[Network]:
         """The members that denoise a render of ``spp`` samples per pixel (None: unknown): those
-        trained on renders of that many spp (:attr:`Network.max_spp`), or all if none was."""
+        trained on renders of that many spp (:attr:`Network.max_spp`; with the spp unknown, those
+        trained on every spp), or all if none was."""
         return [m for m in self.members if m.covers(spp)] or list(self.members)
 
     def ensemble_record(self) -> dict[str, Any]:
@@ -287,7 +289,7 @@ class Denoiser:
         render where the render's noise does not explain the change (:mod:`pipeline.noise_guard`).
         ``keep_network``: also return the network's output before that blend (``network``).
         ``spp``: the render's samples per pixel, where known: an ensemble runs only the members
-        trained on such renders (:meth:`active`). None of the inputs is changed or copied whole.
+        trained on such renders (:meth:`active`; unknown: the members trained on every spp). None of the inputs is changed or copied whole.
         """
         from model.infer import denoise_image
 

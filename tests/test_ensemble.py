@@ -134,22 +134,26 @@ def test_ensemble_denoiser_combines_its_members_outputs(two_models: tuple[Path, 
 
 def test_a_member_trained_for_low_spp_runs_only_there(tmp_path: Path, two_models: tuple[Path, Path]) -> None:
     """A member whose checkpoint was trained on renders of <= 8 spp (``train --max-spp 8``) joins
-    the ensemble at 1-8 spp and where the spp is unknown; above, the others run alone, exactly as
+    the ensemble at 1-8 spp; above, or where the spp is unknown, the others run alone, exactly as
     without it; an ensemble of such members only runs them all."""
     flat, _ = two_models
     low = write_tiny_checkpoint(tmp_path / "low.ckpt", TINY_UNET, seed=3, max_spp=8)
     truth, noisy, var = _case(21, 19, seed=5)
     ens, alone = Denoiser([flat, low]), Denoiser(flat)
     assert [m.max_spp for m in ens.members] == [0, 8] and ens.ensemble_record()["members"][1]["max_spp"] == 8
-    for spp in (1, 8, None):
-        got = ens.denoise_array(noisy, variance=var, spp=spp)
-        assert got.models == ("flat", "low")
-    np.testing.assert_array_equal(ens.denoise_array(noisy, variance=var, spp=4).image,
-                                  ens.denoise_array(noisy, variance=var).image)
-    high = ens.denoise_array(noisy, variance=var, strength=2.0, spp=16)
-    assert high.models == ("flat",)
-    np.testing.assert_array_equal(high.image, alone.denoise_array(noisy, variance=var, strength=2.0).image)
+    for spp in (1, 8):
+        assert ens.denoise_array(noisy, variance=var, spp=spp).models == ("flat", "low")
+    np.testing.assert_allclose(ens.denoise_array(noisy, variance=var, spp=4, keep_network=True).network,
+                               combine(noisy, [alone.denoise_array(noisy, variance=var, keep_network=True).network,
+                                               Denoiser(low).denoise_array(noisy, variance=var,
+                                                                           keep_network=True).network], var),
+                               rtol=1e-4, atol=1e-5)
+    for spp in (16, None):
+        high = ens.denoise_array(noisy, variance=var, strength=2.0, spp=spp)
+        assert high.models == ("flat",)
+        np.testing.assert_array_equal(high.image, alone.denoise_array(noisy, variance=var, strength=2.0).image)
     assert Denoiser([low, low]).denoise_array(noisy, spp=64).models == ("low", "low")
+    assert Denoiser([low, low]).denoise_array(noisy).models == ("low", "low")
 
 
 def test_ensemble_specs(tmp_path: Path, two_models: tuple[Path, Path]) -> None:
