@@ -122,7 +122,8 @@ def denoise_parser() -> OneLineParser:
     p.add_argument("--rgb-only", action="store_true",
                    help="write a plain RGB EXR instead of the input's layers and parts")
     p.add_argument("--spp", type=positive_int,
-                   help="samples per pixel of the input, for the noise guard (default: the file's spp)")
+                   help="samples per pixel of the input, for the noise guard and an ensemble's low-spp members "
+                        "(default: the file's spp)")
     p.add_argument("--no-noise-guard", action="store_true",
                    help="ignore the variance: keep the denoiser's output as it is")
     p.add_argument("--model", help="checkpoint or preset name (default: the shipped weights); "
