@@ -178,14 +178,15 @@ def window_pixels(height: int, width: int, core: Core, margin: int) -> int:
 
 def denoise_seconds(denoiser: Denoiser, height: int, width: int, side: int = 128) -> float:
     """Predicted seconds to denoise an HxW image: timed runs on (side/2)^2 and side^2 images give
-    a cost per call and per window pixel, applied to the real image's tiles."""
+    a cost per call and per window pixel, applied to the real image's tiles. Timed as a 1-spp
+    render: an ensemble's members for low spp run too (the most it can cost)."""
     side = max(16, min(side, max(height, width)))
     img = np.random.default_rng(0).random((side, side, 3), dtype=np.float32)
-    denoiser.denoise_array(img[:16, :16])  # warm-up
+    denoiser.denoise_array(img[:16, :16], spp=1)  # warm-up
     margin = denoiser.margin
     half = side // 2
-    t_half = denoiser.denoise_array(img[:half, :half]).seconds
-    t_full = denoiser.denoise_array(img).seconds
+    t_half = denoiser.denoise_array(img[:half, :half], spp=1).seconds
+    t_full = denoiser.denoise_array(img, spp=1).seconds
     px_half = window_pixels(half, half, denoiser.cores(half, half), margin)
     px_full = window_pixels(side, side, denoiser.cores(side, side), margin)
     per_px = (t_full - t_half) / (px_full - px_half)

@@ -102,7 +102,8 @@ def test_denoise_seconds_scales_by_tile_windows() -> None:
         def cores(self, height: int, width: int) -> tuple[int, int]:
             return 64, 64
 
-        def denoise_array(self, img: np.ndarray) -> SimpleNamespace:
+        def denoise_array(self, img: np.ndarray, spp: int | None = None) -> SimpleNamespace:
+            assert spp == 1  # timed with every member an ensemble may run
             h, w = img.shape[:2]
             return SimpleNamespace(seconds=0.01 + 1e-6 * window_pixels(h, w, 64, 8))  # one tile
 
