@@ -92,6 +92,12 @@ def save_checkpoint(path: str | Path, model: torch.nn.Module, *, step: int,
         for i, state in optimizer.state_dict()["state"].items():
             for key, value in state.items():
                 tensors[f"optim/{i}/{key}"] = torch.as_tensor(value).detach().cpu().contiguous().clone()
+    _write(path, tensors, header)
+
+
+def _write(path: Path, tensors: dict[str, torch.Tensor], header: dict[str, Any]) -> None:
+    """``tensors`` and the JSON ``header`` as one safetensors file, atomically; raises
+    :class:`CheckpointError` when it cannot be written."""
     try:
         with atomic_path(path) as tmp:
             safetensors.torch.save_file(tensors, str(tmp), metadata={_META_KEY: json.dumps(header)})
@@ -147,12 +153,7 @@ def strip_optimizer(src: str | Path, dst: str | Path) -> None:
     Continuing from the result is a warm start (``train --init-from``) with a fresh optimiser."""
     ckpt = read_checkpoint(src)
     tensors = {k: v for k, v in ckpt.tensors.items() if not k.startswith("optim/")}
-    header = {**ckpt.header, "optimizer": None}
-    try:
-        with atomic_path(Path(dst)) as tmp:
-            safetensors.torch.save_file(tensors, str(tmp), metadata={_META_KEY: json.dumps(header)})
-    except OSError as exc:
-        raise CheckpointError(f"{dst}: cannot write ({exc.strerror or exc})") from None
+    _write(Path(dst), tensors, {**ckpt.header, "optimizer": None})
 
 
 def model_from_checkpoint(ckpt: Checkpoint) -> torch.nn.Module:

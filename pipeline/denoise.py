@@ -7,6 +7,7 @@ normals=...)`` returns the same kind of object it was given) but runs on the CPU
 """
 from __future__ import annotations
 
+import functools
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -97,6 +98,16 @@ class Network:
         dtype = compute_dtype(precision, config.multiscale) if optimize else torch.float32
         net = prepare_for_inference(model, dtype) if optimize else model
         return cls(path, model, config, meta, net, dtype, receptive_radius(config))
+
+    @property
+    def precision(self) -> str:
+        """The float format its network computes in: ``float32`` or ``bfloat16``."""
+        return str(self.dtype).removeprefix("torch.")
+
+    @functools.cached_property
+    def sha256(self) -> str:
+        """Its checkpoint file's SHA-256 (hashed once)."""
+        return file_sha256(self.path)
 
     @property
     def max_spp(self) -> int:
@@ -217,13 +228,13 @@ class Denoiser:
     def precision(self) -> str:
         """The float format the network computes in: ``float32`` or ``bfloat16`` (an ensemble's
         members' joined by ``+`` where they differ)."""
-        names = [str(m.dtype).removeprefix("torch.") for m in self.members]
+        names = [m.precision for m in self.members]
         return names[0] if len(set(names)) == 1 else SEPARATOR.join(names)
 
     @property
     def sha256(self) -> str:
         """The checkpoint file's SHA-256 (an ensemble's members' joined by ``+``)."""
-        return SEPARATOR.join(file_sha256(m.path) for m in self.members)
+        return SEPARATOR.join(m.sha256 for m in self.members)
 
     @property
     def needs_aovs(self) -> bool:
@@ -241,8 +252,8 @@ class Denoiser:
         ``{"members": [{"path", "sha256", "step", "precision", "max_spp", "config"}...]}``; ``{}`` for one model."""
         if len(self.members) == 1:
             return {}
-        return {"members": [{"path": str(m.path), "sha256": file_sha256(m.path), "step": m.meta.get("step"),
-                             "precision": str(m.dtype).removeprefix("torch."), "max_spp": m.max_spp,
+        return {"members": [{"path": str(m.path), "sha256": m.sha256, "step": m.meta.get("step"),
+                             "precision": m.precision, "max_spp": m.max_spp,
                              "config": m.config.to_dict()} for m in self.members]}
 
     @property
