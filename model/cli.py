@@ -36,7 +36,7 @@ _FLAGS = {  # argparse dest -> TrainConfig field
     "lr_decay_every": "lr_decay_every", "converged_pairs": "converged_pairs",
     "lr_warmup": "lr_warmup", "lr_cosine_steps": "lr_cosine_steps", "lr_final": "lr_final",
     "noise_dropout": "noise_dropout", "gradient_weight": "gradient_weight", "max_scenes": "max_scenes",
-    "max_spp": "max_spp",
+    "max_spp": "max_spp", "min_spp": "min_spp",
     "log_loss_eps": "log_loss_eps",
 }
 _MODEL_FLAGS = ("arch", "transfer", "output", "aux_inputs", "noise_input", "noise_radius", "levels", "layers",
@@ -95,6 +95,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-scenes", type=int, help="use only the datasets' scenes with index below this")
     p.add_argument("--max-spp", type=int,
                    help="train and validate on the renders of at most this many spp only (default: all)")
+    p.add_argument("--min-spp", type=int,
+                   help="train and validate on the renders of at least this many spp only (default: all)")
     p.add_argument("--extra-data", action="append", metavar="DIR",
                    help="another dataset folder to train and validate on (repeatable)")
     p.add_argument("--cpu-minutes", type=float,

@@ -138,11 +138,13 @@ def _check_data_config(data_config: dict[str, Any], ckpt: Checkpoint | None, con
                                f"({', '.join(f'{k}: {saved.get(k)!r} -> {data_config.get(k)!r}' for k in diff)})")
 
 
-def _at_most(record: SceneRecord, max_spp: int, root: Path) -> SceneRecord:
-    """``record`` with its renders of more than ``max_spp`` spp left out (none left: an error)."""
-    spp = tuple(s for s in record.spp if s <= max_spp)
+def _within(record: SceneRecord, min_spp: int, max_spp: int, root: Path) -> SceneRecord:
+    """``record`` with its renders of fewer than ``min_spp`` or more than ``max_spp`` (0: no limit)
+    spp left out (none left: an error)."""
+    spp = tuple(s for s in record.spp if s >= min_spp and (not max_spp or s <= max_spp))
     if not spp:
-        raise DatasetError(f"{root}: scene {record.index} has no render at <= {max_spp} spp "
+        wanted = " and ".join(f"{op} {n}" for op, n in ((">=", min_spp), ("<=", max_spp)) if n)
+        raise DatasetError(f"{root}: scene {record.index} has no render at {wanted} spp "
                            f"(it has {', '.join(map(str, record.spp))})")
     return dataclasses.replace(record, spp=spp)
 
@@ -212,8 +214,8 @@ class _Run:
             this = read_dataset_config(root)
             _check_data_config(this, ckpt if k == 0 else None, config)
             records = [r for r in read_manifest(root) if not config.max_scenes or r.index < config.max_scenes]
-            if config.max_spp:
-                records = [_at_most(r, config.max_spp, root) for r in records]
+            if config.min_spp or config.max_spp:
+                records = [_within(r, config.min_spp, config.max_spp, root) for r in records]
             train = [r for r in records if r.split == "train"]
             val = [r for r in records if r.split == "val"]
             if not train:

@@ -62,6 +62,8 @@ class TrainConfig:
     converged input must come out unchanged (off in the paper; see docs/training.md).
     ``max_spp`` > 0: train and validate on the renders of at most that many spp only (a specialist
     for noisy input, e.g. an ensemble member; the best checkpoint is chosen on those levels too).
+    ``min_spp`` > 0: likewise, the renders of at least that many spp only (a specialist for clean
+    input; converged pairs, when on, are kept).
     """
 
     data: str
@@ -81,6 +83,7 @@ class TrainConfig:
     log_loss_eps: float = 0.0
     max_scenes: int = 0
     max_spp: int = 0
+    min_spp: int = 0
     extra_data: tuple[str, ...] = ()
     cpu_budget_s: float = 0.0
     grad_clip: float | None = None
@@ -112,10 +115,12 @@ class TrainConfig:
             if not isinstance(value, int) or isinstance(value, bool) or value < 1:
                 raise ConfigError(f"{name} must be a positive integer, got {value!r}")
         for name in ("val_every", "threads", "seed", "lr_warmup", "lr_cosine_steps", "max_scenes",
-                     "max_spp"):
+                     "max_spp", "min_spp"):
             value = getattr(self, name)
             if not isinstance(value, int) or isinstance(value, bool) or value < 0:
                 raise ConfigError(f"{name} must be an integer >= 0, got {value!r}")
+        if self.max_spp and self.min_spp > self.max_spp:
+            raise ConfigError(f"min_spp ({self.min_spp}) must not exceed max_spp ({self.max_spp})")
         if not (isinstance(self.lr, (int, float)) and self.lr > 0):
             raise ConfigError(f"lr must be > 0, got {self.lr!r}")
         if not (isinstance(self.lr_decay, (int, float)) and 0 < self.lr_decay <= 1):
