@@ -16,7 +16,8 @@ converged 4096-spp image before and after denoising, and peak memory denoising a
   image in RAM, one small warm-up image denoised).
 
 Prints a table and writes benchmarks/results/extremes.json (the entry of the other mode is kept).
-The model defaults to the shipped weights (model/weights/default.ckpt).
+The model defaults to the shipped default (pipeline.denoise.DEFAULT_MODEL); an ensemble's members
+run as for the spp of each image (energy: 16; constants, zero and memory: 1, where every member runs).
 """
 from __future__ import annotations
 
@@ -35,10 +36,11 @@ import numpy as np
 
 
 from benchmarks.eval_scenes import eval_scenes
-from imaging.hashing import file_sha256
+from imaging.errors import DenoiserError
 from imaging.metrics import psnr
 from imaging.render import render
-from pipeline.denoise import DEFAULT_WEIGHTS, Denoiser
+from pipeline.denoise import Denoiser
+from pipeline.ensemble import SEPARATOR
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results" / "extremes.json"
@@ -62,17 +64,17 @@ def energy(den: Denoiser, names: list[str], res: tuple[int, int]) -> dict[str, A
         path, params, resolution = _scene(name, res)
         noisy = render(path, 16, seed=3, resolution=resolution, params=params).rgb
         mean = float(noisy.mean())
-        row = {"noisy_mean": mean, "ratio": float(den.denoise_array(noisy).image.mean()) / mean}
+        row = {"noisy_mean": mean, "ratio": float(den.denoise_array(noisy, spp=16).image.mean()) / mean}
         for target in EXPOSURES:
             scale = target / mean
-            out = den.denoise_array(noisy * scale).image / scale
+            out = den.denoise_array(noisy * scale, spp=16).image / scale
             row[f"ratio_at_mean_{target:g}"] = float(out.mean()) / mean
         rows[name] = row
-    zero = den.denoise_array(np.zeros((64, 64, 3), np.float32)).image
+    zero = den.denoise_array(np.zeros((64, 64, 3), np.float32), spp=1).image
     constants = {}
     r = den.margin
     for value in CONSTANTS:
-        interior = den.denoise_array(np.full((64, 64, 3), value, np.float32)).image[r:-r, r:-r]
+        interior = den.denoise_array(np.full((64, 64, 3), value, np.float32), spp=1).image[r:-r, r:-r]
         constants[f"{value:g}"] = {"mean_rel_error": float(interior.mean() / value - 1),
                                    "std_rel": float(interior.std() / value)}
     worst = max(abs(row[k] - 1) for row in rows.values() for k in row if k.startswith("ratio"))
@@ -87,7 +89,7 @@ def converged(den: Denoiser, sizes: tuple[int, ...]) -> dict[str, Any]:
     for size in sizes:
         noisy = render(DEMO, 4096, seed=1, resolution=(size, size), halves=True)
         reference = render(DEMO, 16384, seed=2, resolution=(size, size)).rgb
-        out = den.denoise_array(noisy.rgb).image
+        out = den.denoise_array(noisy.rgb, spp=noisy.spp).image
         guarded = den.denoise_render(noisy).image
         rows[str(size)] = {"psnr_noisy_db": psnr(noisy.rgb, reference), "psnr_denoised_db": psnr(out, reference),
                            "psnr_guarded_db": psnr(guarded, reference),
@@ -105,10 +107,10 @@ def memory_child(model: str, width: int, height: int, max_memory_mb: float) -> d
     den = Denoiser(model, max_memory_mb=max_memory_mb)
     rng = np.random.default_rng(0)
     image = (rng.random((height, width, 3), dtype=np.float32) * 4.0).astype(np.float32, copy=False)
-    den.denoise_array(image[:64, :64])  # warm-up: one-time allocations are not the image's
+    den.denoise_array(image[:64, :64], spp=1)  # warm-up: one-time allocations are not the image's
     base = _rss_mb()
     start = time.perf_counter()
-    result = den.denoise_array(image)
+    result = den.denoise_array(image, spp=1)  # every member of an ensemble
     seconds = time.perf_counter() - start
     peak = _rss_mb()
     assert np.isfinite(result.image).all()
@@ -153,7 +155,7 @@ def _table(result: dict[str, Any]) -> list[str]:
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--model", help="checkpoint (default: the shipped weights)")
+    p.add_argument("--model", help="checkpoint, preset or ensemble (default: the shipped default)")
     p.add_argument("--quick", action="store_true", help="demo only, small images, 960x540 memory run")
     p.add_argument("--size", help="memory run image WxH (default 7680x4320, --quick 960x540)")
     p.add_argument("--max-memory-mb", type=float, default=1024.0)
@@ -163,17 +165,18 @@ def main() -> None:
     parts = set(args.parts.split(","))
     if not parts <= set(PARTS):
         raise SystemExit(f"extremes: unknown part in --parts {args.parts!r}")
-    model = args.model or str(DEFAULT_WEIGHTS)
-    if not Path(model).exists():
-        raise SystemExit(f"extremes: {model}: no shipped weights yet; pass --model PATH")
     width, height = (int(v) for v in (args.size or ("960x540" if args.quick else "7680x4320")).split("x"))
-    den = Denoiser(model, max_memory_mb=args.max_memory_mb)
+    try:
+        den = Denoiser(args.model, max_memory_mb=args.max_memory_mb)
+    except DenoiserError as exc:
+        raise SystemExit(f"extremes: {exc}") from None
+    model = SEPARATOR.join(str(m.path) for m in den.members)
     mode = "quick" if args.quick else "full"
     names = ["demo"] + ([] if args.quick else [s.name for s in eval_scenes(EVAL_SCENES)])
     previous = json.loads(RESULTS.read_text()) if RESULTS.exists() else {}
     result = {k: v for k, v in previous.get(mode, {}).items() if k in PARTS}
     result.update({
-        "mode": mode, "model": Path(model).name, "model_sha256": file_sha256(Path(model)),
+        "mode": mode, "model": den.name, "model_sha256": den.sha256,
         "machine": f"{platform.machine()}, {os.cpu_count()} cores (load {os.getloadavg()[0]:.1f} at start)",
     })
     if "energy" in parts:

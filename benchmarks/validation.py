@@ -26,7 +26,7 @@ from model.checkpoint import load_model
 from model.dataset import ValImage, load_val_images, read_manifest
 from model.train import DATASET_ID_STRIDE
 from model.validate import Validator
-from pipeline.denoise import resolve_model
+from pipeline.denoise import DEFAULT_MODEL, resolve_model
 
 
 def val_images(folders: list[Path], max_scenes: int | None, noise: bool) -> list[ValImage]:
@@ -104,11 +104,11 @@ def markdown(result: dict[str, Any]) -> str:
 
 def model_specs(entries: tuple[str, ...]) -> dict[str, Path]:
     """``--models`` entries -> {column name: checkpoint}: ``NAME=CHECKPOINT`` names a column, a preset
-    or path names itself, ``default`` is the shipped default."""
+    or path names itself."""
     specs = {}
     for entry in entries:
         name, _, spec = entry.partition("=") if "=" in entry else (entry, "=", entry)
-        specs[name] = resolve_model(None if spec == "default" else spec)
+        specs[name] = resolve_model(spec)
     return specs
 
 
@@ -116,8 +116,9 @@ def build_parser() -> OneLineParser:
     p = OneLineParser(prog="python -m benchmarks.validation", description=__doc__.splitlines()[0])
     p.add_argument("--data", type=Path, action="append", required=True,
                    help="dataset folder (repeatable): its 'val' scenes are scored")
-    p.add_argument("--models", type=name_list, default=("default",),
-                   help="comma-separated presets, checkpoints or NAME=CHECKPOINT ('default': the shipped default)")
+    p.add_argument("--models", type=name_list, default=DEFAULT_MODEL,
+                   help="comma-separated presets, checkpoints or NAME=CHECKPOINT, each scored alone "
+                        f"(default: the default ensemble's members, {','.join(DEFAULT_MODEL)})")
     p.add_argument("--max-scenes", type=positive_int, help="only scenes with index below this")
     p.add_argument("--no-oidn", action="store_true", help="skip the OIDN baseline")
     p.add_argument("--out", type=Path, default=RESULTS)

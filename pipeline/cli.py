@@ -13,6 +13,8 @@ from imaging.render import DEFAULT_MAX_MEMORY_MB
 from imaging.usage import OneLineParser, int_list, name_list, name_value, positive_float, positive_int
 from model.flips import FLIPS
 from model.precision import PRECISIONS
+from pipeline.denoise import DEFAULT_MODEL
+from pipeline.ensemble import SEPARATOR
 from pipeline.evaluation import RenderSettings
 
 
@@ -71,7 +73,7 @@ def render_parser() -> OneLineParser:
         "render in one piece and keep the denoiser's output as it is (default: render in two halves "
         "and keep the render where its noise does not explain the change)"))
     p.add_argument("--spp", type=positive_int, help="samples per pixel (128)")
-    p.add_argument("--model", help="checkpoint or preset name (default: the shipped weights); "
+    p.add_argument("--model", help=f"checkpoint or preset name (default: {SEPARATOR.join(DEFAULT_MODEL)}); "
                    "A+B: an ensemble (e.g. fast+u-high); 'auto' with --time-budget")
     compare = p.add_mutually_exclusive_group()
     compare.add_argument("--compare", choices=["oidn"], action="append", default=[],
@@ -126,7 +128,7 @@ def denoise_parser() -> OneLineParser:
                         "(default: the file's spp)")
     p.add_argument("--no-noise-guard", action="store_true",
                    help="ignore the variance: keep the denoiser's output as it is")
-    p.add_argument("--model", help="checkpoint or preset name (default: the shipped weights); "
+    p.add_argument("--model", help=f"checkpoint or preset name (default: {SEPARATOR.join(DEFAULT_MODEL)}); "
                    "A+B: an ensemble (e.g. fast+u-high)")
     p.add_argument("--reference", help="reference image: print metrics")
     p.add_argument("--max-memory-mb", type=float, default=DEFAULT_MAX_MEMORY_MB, help="tile memory bound")

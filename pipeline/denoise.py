@@ -28,24 +28,20 @@ if TYPE_CHECKING:
     from imaging.render import RenderResult
 
 WEIGHTS_DIR = Path(__file__).resolve().parents[1] / "model" / "weights"
-DEFAULT_WEIGHTS = WEIGHTS_DIR / "default.ckpt"
+# The model when none is named: an ensemble of shipped checkpoints (docs/scoreboard.md, "The default").
+DEFAULT_MODEL = ("fast", "u-high-lowspp")
 DEFAULT_MAX_MEMORY_MB = 1024
 
 
-def resolve_model(name: str | Path | None) -> Path:
-    """Checkpoint file of a ``--model`` value: None -> the shipped default, a preset name (``fast``,
-    ``balanced``, ``high``) -> ``model/weights/<name>.ckpt``, the name of another shipped checkpoint
-    (``u-balanced-noise``: a bare name, no such file here) -> that file, anything else -> a path.
+def resolve_model(name: str | Path) -> Path:
+    """Checkpoint file of one ``--model`` member: a preset name (``fast``, ``balanced``, ``high``) ->
+    ``model/weights/<name>.ckpt``, the name of another shipped checkpoint (``u-high-lowspp``: a bare
+    name, no such file here) -> that file, anything else -> a path.
 
-    Raises :class:`DenoiserError` naming the file when the default or a preset's weights are missing.
+    Raises :class:`DenoiserError` naming the file when a preset's weights are missing.
     """
     from model.config import PRESETS
 
-    if name is None:
-        if not DEFAULT_WEIGHTS.exists():
-            raise DenoiserError(f"{DEFAULT_WEIGHTS}: no default weights are shipped yet; pass --model "
-                                "PATH (a checkpoint written by `train`)")
-        return DEFAULT_WEIGHTS
     path = WEIGHTS_DIR / f"{name}.ckpt"
     if Path(name).exists() or Path(name).name != str(name):
         return Path(name)
@@ -55,15 +51,28 @@ def resolve_model(name: str | Path | None) -> Path:
     return path if path.exists() else Path(name)
 
 
-def ensemble_members(spec: str | Path | Sequence[str | Path] | None) -> list[str | Path | None]:
-    """The models of a ``--model`` value: ``A+B[+...]`` (:mod:`pipeline.ensemble`) names several,
-    unless it is an existing file's path; a list or tuple names its items; anything else is one.
-    Raises :class:`DenoiserError` for an empty member."""
+def default_paths() -> list[Path]:
+    """The checkpoint files of :data:`DEFAULT_MODEL`; raises :class:`DenoiserError` naming one that
+    is missing."""
+    paths = [resolve_model(name) for name in DEFAULT_MODEL]
+    for path in paths:
+        if not path.is_file():
+            raise DenoiserError(f"{path}: default weights missing; pass --model PATH (a checkpoint "
+                                "written by `train`)")
+    return paths
+
+
+def ensemble_members(spec: str | Path | Sequence[str | Path] | None) -> list[str | Path]:
+    """The models of a ``--model`` value: None -> :data:`DEFAULT_MODEL`'s; ``A+B[+...]``
+    (:mod:`pipeline.ensemble`) names several, unless it is an existing file's path; a list or tuple
+    names its items; anything else is one. Raises :class:`DenoiserError` for an empty member."""
+    if spec is None:
+        return list(DEFAULT_MODEL)
     if isinstance(spec, (list, tuple)):
         if not spec or not all(str(m).strip() for m in spec):
             raise DenoiserError(f"model ensemble {list(map(str, spec))!r}: expected models, no empty member")
         return list(spec)
-    if spec is None or SEPARATOR not in str(spec) or Path(spec).exists():
+    if SEPARATOR not in str(spec) or Path(spec).exists():
         return [spec]
     try:
         return list(split_spec(str(spec)))
@@ -75,7 +84,8 @@ def ensemble_members(spec: str | Path | Sequence[str | Path] | None) -> list[str
 class Network:
     """One loaded checkpoint: its file, training module, config, metadata, the network that runs
     (folded unless ``optimize`` is off), its float format and its receptive radius in pixels.
-    ``max_spp``: the most spp of the renders it was trained on (``train --max-spp``; 0: all)."""
+    ``min_spp`` / ``max_spp``: the fewest / most spp of the renders it was trained on
+    (``train --min-spp`` / ``--max-spp``; 0: no limit)."""
 
     path: Path
     model: Any
@@ -113,10 +123,17 @@ class Network:
     def max_spp(self) -> int:
         return int((self.meta.get("train_config") or {}).get("max_spp") or 0)
 
+    @property
+    def min_spp(self) -> int:
+        return int((self.meta.get("train_config") or {}).get("min_spp") or 0)
+
     def covers(self, spp: int | None) -> bool:
         """True if it was trained on renders of ``spp`` samples per pixel: always for a model trained
-        on every spp; for one trained on at most ``max_spp``, only where ``spp`` is known to be within."""
-        return not self.max_spp or (spp is not None and spp <= self.max_spp)
+        on every spp; for one trained on a range (``min_spp`` .. ``max_spp``), only where ``spp`` is
+        known to be within."""
+        if not self.min_spp and not self.max_spp:
+            return True
+        return spp is not None and self.min_spp <= spp and (not self.max_spp or spp <= self.max_spp)
 
 
 @dataclass
@@ -154,7 +171,7 @@ class Denoiser:
     """A trained model ready to denoise HxWx3 linear radiance on the CPU.
 
     ``checkpoint``: a file written by ``train`` or a preset name (:func:`resolve_model`; default:
-    the shipped ``model/weights/default.ckpt``); ``A+B[+...]`` or a list of them an ensemble: every model denoises
+    :data:`DEFAULT_MODEL`); ``A+B[+...]`` or a list of them an ensemble: every model denoises
     the image and :mod:`pipeline.ensemble` combines their outputs (weighted by their estimated
     error where a variance is given, else their mean) before the guard. ``path``, ``model``,
     ``config``, ``meta``, ``net`` and ``dtype`` are the first model's; ``members`` holds them all.
@@ -196,8 +213,8 @@ class Denoiser:
             raise DenoiserError(str(exc)) from None
         if not 0 < max_memory_mb < float("inf"):  # also refuses NaN
             raise DenoiserError(f"max memory must be positive and finite, got {max_memory_mb} MB")
-        specs = ensemble_members(checkpoint)
-        paths = [resolve_model(spec) for spec in specs]  # every member's file known before any load
+        # every member's file known before any load
+        paths = default_paths() if checkpoint is None else [resolve_model(m) for m in ensemble_members(checkpoint)]
         if threads:
             torch.set_num_threads(int(threads))
         fix_mmap_threshold()
@@ -243,17 +260,18 @@ class Denoiser:
 
     def active(self, spp: int | None) -> list[Network]:
         """The members that denoise a render of ``spp`` samples per pixel (None: unknown): those
-        trained on renders of that many spp (:attr:`Network.max_spp`; with the spp unknown, those
+        trained on renders of that many spp (:meth:`Network.covers`; with the spp unknown, those
         trained on every spp), or all if none was."""
         return [m for m in self.members if m.covers(spp)] or list(self.members)
 
     def ensemble_record(self) -> dict[str, Any]:
         """For an ensemble, what a run's record adds beside the first model's config:
-        ``{"members": [{"path", "sha256", "step", "precision", "max_spp", "config"}...]}``; ``{}`` for one model."""
+        ``{"members": [{"path", "sha256", "step", "precision", "min_spp", "max_spp", "config"}...]}``;
+        ``{}`` for one model."""
         if len(self.members) == 1:
             return {}
         return {"members": [{"path": str(m.path), "sha256": m.sha256, "step": m.meta.get("step"),
-                             "precision": m.precision, "max_spp": m.max_spp,
+                             "precision": m.precision, "min_spp": m.min_spp, "max_spp": m.max_spp,
                              "config": m.config.to_dict()} for m in self.members]}
 
     @property

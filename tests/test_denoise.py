@@ -18,9 +18,10 @@ from pipeline.noise_guard import blend_weight, clean_render, guard
 TINY = ModelConfig(layers=3, growth=4, init_features=8)
 
 
-def write_tiny_checkpoint(path: Path, config: ModelConfig = TINY, seed: int = 0, max_spp: int = 0) -> Path:
+def write_tiny_checkpoint(path: Path, config: ModelConfig = TINY, seed: int = 0, max_spp: int = 0,
+                          min_spp: int = 0) -> Path:
     """A random (untrained) model with non-trivial BatchNorm statistics, saved like `train` does
-    (``max_spp``: recorded as trained on renders of at most that many spp)."""
+    (``min_spp`` / ``max_spp``: recorded as trained on renders of at least / most that many spp)."""
     torch.manual_seed(seed)
     model = build_model(config)
     with torch.no_grad():
@@ -28,7 +29,8 @@ def write_tiny_checkpoint(path: Path, config: ModelConfig = TINY, seed: int = 0,
             if isinstance(m, torch.nn.BatchNorm2d):
                 m.running_mean.uniform_(-0.1, 0.1)
                 m.running_var.uniform_(0.5, 1.5)
-    save_checkpoint(path, model, step=0, train_config={"max_spp": max_spp} if max_spp else None)
+    limits = {k: v for k, v in (("min_spp", min_spp), ("max_spp", max_spp)) if v}
+    save_checkpoint(path, model, step=0, train_config=limits or None)
     return path
 
 

@@ -10,7 +10,7 @@ import pytest
 from imaging.errors import DenoiserError
 from imaging.exr import write_exr
 from pipeline.cli import denoise_main
-from pipeline.denoise import Denoiser, ensemble_members
+from pipeline.denoise import DEFAULT_MODEL, Denoiser, ensemble_members
 from pipeline.ensemble import (COMBINE_BYTES_PER_PIXEL, weighted_sum, combine, combine_in_place, combine_weights,
                                split_spec, weight_bytes_per_pixel)
 from pipeline.noise_guard import clean_render
@@ -156,11 +156,26 @@ def test_a_member_trained_for_low_spp_runs_only_there(tmp_path: Path, two_models
     assert Denoiser([low, low]).denoise_array(noisy).models == ("low", "low")
 
 
+def test_members_trained_for_an_spp_range_run_only_within_it(tmp_path: Path, two_models: tuple[Path, Path]) -> None:
+    """Specialists for low (<= 8) and high (>= 16) spp beside a model trained on every spp: exactly
+    two run at any known spp, the all-spp model alone where the spp is unknown."""
+    flat, _ = two_models
+    low = write_tiny_checkpoint(tmp_path / "low.ckpt", TINY_UNET, seed=3, max_spp=8)
+    high = write_tiny_checkpoint(tmp_path / "high.ckpt", TINY_UNET, seed=4, min_spp=16)
+    _, noisy, var = _case(17, 13, seed=6)
+    ens = Denoiser([flat, low, high])
+    assert [(m.min_spp, m.max_spp) for m in ens.members] == [(0, 0), (0, 8), (16, 0)]
+    assert [(m["min_spp"], m["max_spp"]) for m in ens.ensemble_record()["members"]] == [(0, 0), (0, 8), (16, 0)]
+    for spp, ran in ((1, ("flat", "low")), (8, ("flat", "low")), (12, ("flat",)), (16, ("flat", "high")),
+                     (4096, ("flat", "high")), (None, ("flat",))):
+        assert ens.denoise_array(noisy, variance=var, spp=spp).models == ran, spp
+
+
 def test_ensemble_specs(tmp_path: Path, two_models: tuple[Path, Path]) -> None:
     """A file whose name holds '+' is one model; a list names its members (a '+' in a path kept);
     an empty or missing member is a clear error."""
     plus = write_tiny_checkpoint(tmp_path / "a+b.ckpt")
-    assert ensemble_members(plus) == [plus] and ensemble_members(None) == [None]
+    assert ensemble_members(plus) == [plus] and ensemble_members(None) == list(DEFAULT_MODEL)
     assert len(Denoiser(plus).members) == 1
     assert ensemble_members([plus, two_models[0]]) == [plus, two_models[0]]
     assert [m.path for m in Denoiser([plus, two_models[1]]).members] == [plus, two_models[1]]
