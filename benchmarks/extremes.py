@@ -17,7 +17,8 @@ converged 4096-spp image before and after denoising, and peak memory denoising a
 
 Prints a table and writes benchmarks/results/extremes.json (the entry of the other mode is kept).
 The model defaults to the shipped default (pipeline.denoise.DEFAULT_MODEL); an ensemble's members
-run as for the spp of each image (energy: 16; constants, zero and memory: 1, where every member runs).
+run as for the spp of each image (energy: 16; constants, zero and memory: 1; the default runs two
+networks at any spp, its U-Nets of one shape).
 """
 from __future__ import annotations
 
@@ -110,7 +111,7 @@ def memory_child(model: str, width: int, height: int, max_memory_mb: float) -> d
     den.denoise_array(image[:64, :64], spp=1)  # warm-up: one-time allocations are not the image's
     base = _rss_mb()
     start = time.perf_counter()
-    result = den.denoise_array(image, spp=1)  # every member of an ensemble
+    result = den.denoise_array(image, spp=1)  # an ensemble's low-spp members
     seconds = time.perf_counter() - start
     peak = _rss_mb()
     assert np.isfinite(result.image).all()

@@ -31,18 +31,19 @@ import numpy as np
 from imaging.errors import DenoiserError
 from imaging.render import render_loaded
 from imaging.tiling import Core, plan_tiles
-from pipeline.denoise import WEIGHTS_DIR, Denoiser, ensemble_members
+from pipeline.denoise import DEFAULT_MODEL, WEIGHTS_DIR, Denoiser, ensemble_members
+from pipeline.ensemble import SEPARATOR, spp_range
 from pipeline.evaluation import RenderSettings, make_denoiser
 from pipeline.pareto import error_at_spp, metric_error
 
 DENOISE_SHARE = 1.0 / 3.0
 PROBE_SHARE = 0.05
 MAX_SPP = 1 << 16
-# Best quality first, as measured on ../shared/eval-scenes (docs/scoreboard.md): the ensemble
-# `fast+u-high` (pipeline/ensemble.py) is above `fast` at 4, 16 and 128 spp for 1.1-1.8x its time;
-# the shipped `fast` is level with `balanced` at 16 spp and ahead at 128 spp, `high` last — and
-# `fast` is the cheapest of the flat presets.
-PRESET_ORDER = ("fast+u-high", "fast", "balanced", "high")
+# Best quality first, as measured on ../shared/eval-scenes (docs/scoreboard.md): the default
+# ensemble (pipeline/ensemble.py; `fast+u-high` above 16 spp, `fast+u-high-lowspp` up to 16) is above
+# `fast` at every spp for 1.1-1.8x its time; the shipped `fast` is level with `balanced` at 16 spp and
+# ahead at 128 spp, `high` last — and `fast` is the cheapest of the flat presets.
+PRESET_ORDER = (SEPARATOR.join(DEFAULT_MODEL), "fast", "balanced", "high")
 DEFAULT_CURVES = WEIGHTS_DIR / "tradeoff.json"
 
 Curves = dict[str, tuple[list[float], list[float]]]  # denoiser -> (spp, error)
@@ -204,12 +205,14 @@ def budget_candidates(model: str | None, settings: RenderSettings) -> dict[str, 
     if model != "auto":
         den = make_denoiser(model, settings)
         return {den.label: den}
-    found = {name: [WEIGHTS_DIR / f"{member}.ckpt" for member in ensemble_members(name)] for name in PRESET_ORDER}
-    found = {name: paths for name, paths in found.items() if all(path.exists() for path in paths)}
+    found = {name: [spp_range(str(member)) for member in ensemble_members(name)] for name in PRESET_ORDER}
+    found = {name: members for name, members in found.items()
+             if all((WEIGHTS_DIR / f"{model}.ckpt").exists() for model, _, _ in members)}
     if not found:
         raise BudgetError(f"--model auto: no preset weights in {WEIGHTS_DIR} "
                           f"({', '.join(n + '.ckpt' for n in PRESET_ORDER if len(ensemble_members(n)) == 1)})")
-    return {name: make_denoiser(paths, settings) for name, paths in found.items()}
+    return {name: make_denoiser([str(WEIGHTS_DIR / f"{model}.ckpt") + (f":{lo or ''}-{hi or ''}" if lo or hi else "")
+                                 for model, lo, hi in members], settings) for name, members in found.items()}
 
 
 def plan_run(budget_s: float, started: float, scene: Any, seed: int, aovs: Sequence[str],

@@ -21,15 +21,16 @@ from imaging.blocks import block_rows
 from imaging.errors import DenoiserError
 from imaging.hashing import file_sha256
 from imaging.tiling import core_for_budget, cores_for_budget
-from pipeline.ensemble import SEPARATOR, combine_in_place, split_spec
+from pipeline.ensemble import SEPARATOR, combine_in_place, split_spec, spp_range
 from pipeline.noise_guard import DEFAULT_STRENGTH, guard_in_place, strength_for
 
 if TYPE_CHECKING:
     from imaging.render import RenderResult
 
 WEIGHTS_DIR = Path(__file__).resolve().parents[1] / "model" / "weights"
-# The model when none is named: an ensemble of shipped checkpoints (docs/scoreboard.md, "The default").
-DEFAULT_MODEL = ("fast", "u-high-lowspp")
+# The model when none is named: an ensemble of shipped checkpoints, u-high only above 16 spp
+# (docs/scoreboard.md, "The default").
+DEFAULT_MODEL = ("fast", "u-high-lowspp", "u-high:17-")
 DEFAULT_MAX_MEMORY_MB = 1024
 
 
@@ -51,15 +52,24 @@ def resolve_model(name: str | Path) -> Path:
     return path if path.exists() else Path(name)
 
 
-def default_paths() -> list[Path]:
-    """The checkpoint files of :data:`DEFAULT_MODEL`; raises :class:`DenoiserError` naming one that
-    is missing."""
-    paths = [resolve_model(name) for name in DEFAULT_MODEL]
-    for path in paths:
-        if not path.is_file():
+def resolve_members(spec: str | Path | Sequence[str | Path] | None) -> list[tuple[Path, int, int]]:
+    """Every member of a ``--model`` value (:func:`ensemble_members`) as (checkpoint file, LO, HI):
+    the spp range it is limited to (``MODEL:LO-HI``, :func:`pipeline.ensemble.spp_range`; 0: no
+    limit). Raises :class:`DenoiserError` for a bad range, or naming a missing file of the default."""
+    members = []
+    for member in ensemble_members(spec):
+        name, lo, hi = member, 0, 0
+        if not Path(member).exists():
+            try:
+                name, lo, hi = spp_range(str(member))
+            except ValueError as exc:
+                raise DenoiserError(str(exc)) from None
+        path = resolve_model(name)
+        if spec is None and not path.is_file():
             raise DenoiserError(f"{path}: default weights missing; pass --model PATH (a checkpoint "
                                 "written by `train`)")
-    return paths
+        members.append((path, lo, hi))
+    return members
 
 
 def ensemble_members(spec: str | Path | Sequence[str | Path] | None) -> list[str | Path]:
@@ -84,8 +94,9 @@ def ensemble_members(spec: str | Path | Sequence[str | Path] | None) -> list[str
 class Network:
     """One loaded checkpoint: its file, training module, config, metadata, the network that runs
     (folded unless ``optimize`` is off), its float format and its receptive radius in pixels.
-    ``min_spp`` / ``max_spp``: the fewest / most spp of the renders it was trained on
-    (``train --min-spp`` / ``--max-spp``; 0: no limit)."""
+    ``min_spp`` / ``max_spp``: the fewest / most spp of the renders it runs on: those it was trained
+    on (``train --min-spp`` / ``--max-spp``), within the range its ensemble spec gives it (``limit``,
+    ``MODEL:LO-HI``); 0: no limit."""
 
     path: Path
     model: Any
@@ -94,9 +105,10 @@ class Network:
     net: Any
     dtype: Any
     margin: int
+    limit: tuple[int, int] = (0, 0)
 
     @classmethod
-    def load(cls, path: Path, optimize: bool, precision: str) -> Network:
+    def load(cls, path: Path, optimize: bool, precision: str, limit: tuple[int, int] = (0, 0)) -> Network:
         import torch
 
         from model.architectures import prepare_for_inference, receptive_radius
@@ -107,7 +119,7 @@ class Network:
         model.eval()
         dtype = compute_dtype(precision, config.multiscale) if optimize else torch.float32
         net = prepare_for_inference(model, dtype) if optimize else model
-        return cls(path, model, config, meta, net, dtype, receptive_radius(config))
+        return cls(path, model, config, meta, net, dtype, receptive_radius(config), limit)
 
     @property
     def precision(self) -> str:
@@ -121,16 +133,22 @@ class Network:
 
     @property
     def max_spp(self) -> int:
-        return int((self.meta.get("train_config") or {}).get("max_spp") or 0)
+        ends = [n for n in (int((self.meta.get("train_config") or {}).get("max_spp") or 0), self.limit[1]) if n]
+        return min(ends, default=0)
 
     @property
     def min_spp(self) -> int:
-        return int((self.meta.get("train_config") or {}).get("min_spp") or 0)
+        return max(int((self.meta.get("train_config") or {}).get("min_spp") or 0), self.limit[0])
+
+    @property
+    def label(self) -> str:
+        """Its file's stem, with the range its spec limits it to (``u-high:17-``)."""
+        lo, hi = self.limit
+        return self.path.stem + (f":{lo or ''}-{hi or ''}" if lo or hi else "")
 
     def covers(self, spp: int | None) -> bool:
-        """True if it was trained on renders of ``spp`` samples per pixel: always for a model trained
-        on every spp; for one trained on a range (``min_spp`` .. ``max_spp``), only where ``spp`` is
-        known to be within."""
+        """True if it runs on renders of ``spp`` samples per pixel: always for a model trained on every
+        spp and not limited; else only where ``spp`` is known to be within ``min_spp`` .. ``max_spp``."""
         if not self.min_spp and not self.max_spp:
             return True
         return spp is not None and self.min_spp <= spp and (not self.max_spp or spp <= self.max_spp)
@@ -213,14 +231,13 @@ class Denoiser:
             raise DenoiserError(str(exc)) from None
         if not 0 < max_memory_mb < float("inf"):  # also refuses NaN
             raise DenoiserError(f"max memory must be positive and finite, got {max_memory_mb} MB")
-        # every member's file known before any load
-        paths = default_paths() if checkpoint is None else [resolve_model(m) for m in ensemble_members(checkpoint)]
+        members = resolve_members(checkpoint)  # every member's file known before any load
         if threads:
             torch.set_num_threads(int(threads))
         fix_mmap_threshold()
         use_huge_pages()  # before the first large tensor: the tiles' temporaries fault per 2 MiB
         self.optimize = optimize
-        self.members = [Network.load(path, optimize, precision) for path in paths]
+        self.members = [Network.load(path, optimize, precision, (lo, hi)) for path, lo, hi in members]
         for member in self.members:
             if self.flips > 1 and member.config.aux_inputs:
                 raise DenoiserError(f"{member.path.name}: test-time flips need a model without albedo/normal inputs")
@@ -238,8 +255,9 @@ class Denoiser:
 
     @property
     def label(self) -> str:
-        """The model's short name: its file's stem (``fast``), an ensemble's joined (``fast+u-high``)."""
-        return SEPARATOR.join(m.path.stem for m in self.members)
+        """The model's short name: its file's stem (``fast``), an ensemble's joined with their spp
+        limits (``fast+u-high-lowspp+u-high:17-``)."""
+        return SEPARATOR.join(m.label for m in self.members)
 
     @property
     def precision(self) -> str:

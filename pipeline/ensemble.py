@@ -22,6 +22,7 @@ black: 0.8-1.0 dB lower after the guard), where their squares keep it out. Windo
 """
 from __future__ import annotations
 
+import re
 from collections.abc import Sequence
 
 import numpy as np
@@ -34,6 +35,7 @@ DEFAULT_RADIUS = 3  # window 7x7 (benchmarks/ensemble.py)
 DEFAULT_LAMBDA = 0.3  # T_k + lam * V (benchmarks/ensemble.py)
 DEFAULT_POWER = 2.0  # weights (1 / (T_k + lam * V))^power (benchmarks/ensemble.py, the converged regime)
 SEPARATOR = "+"  # ``--model fast+u-high``
+_SPP_RANGE = re.compile(r"^(?P<model>.+):(?P<lo>\d*)-(?P<hi>\d*)$")  # ``u-high:17-``
 
 
 def combine_weights(noisy: np.ndarray, outputs: Sequence[np.ndarray], variance: np.ndarray,
@@ -163,3 +165,17 @@ def split_spec(spec: str) -> list[str]:
     if len(parts) < 2 or not all(parts):
         raise ValueError(f"model ensemble {spec!r}: expected MODEL+MODEL[+...] with no empty member")
     return parts
+
+
+def spp_range(member: str) -> tuple[str, int, int]:
+    """An ensemble member ``MODEL:LO-HI`` -> (MODEL, LO, HI): it runs only on renders of LO to HI
+    spp (either end may be left out: ``u-high:17-``; 0: no limit); a member without a range ->
+    (member, 0, 0). Raises ValueError for a range with neither end or with LO > HI."""
+    match = _SPP_RANGE.match(member)
+    if match is None:
+        return member, 0, 0
+    lo, hi = int(match["lo"] or 0), int(match["hi"] or 0)
+    if not (lo or hi) or (hi and lo > hi):
+        raise ValueError(f"model ensemble member {member!r}: expected MODEL:LO-HI spp with LO <= HI "
+                         "(one end may be left out)")
+    return match["model"], lo, hi

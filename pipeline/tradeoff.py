@@ -21,16 +21,16 @@ from imaging.errors import DenoiserError
 from imaging.progress import ProgressBar, ProgressFactory
 from imaging.render import RenderResult
 from model.config import PRESETS
-from pipeline.denoise import Denoiser, ensemble_members, resolve_model
+from pipeline.denoise import DEFAULT_MODEL, Denoiser, ensemble_members, resolve_members
 from pipeline.ensemble import SEPARATOR
 from pipeline.evaluation import (OIDN, Output, RenderSettings, aovs_for, check_reference, denoise_output, make_denoiser,
                                  read_reference, render_input, render_reference, score)
 from pipeline.pareto import ERROR_OF_METRIC, equal_quality, metric_error, pareto_front
 
 DEFAULT_SPP = (1, 2, 4, 8, 16, 32, 64, 128, 256, 512, 1024)
-# the flat presets, the fastest good multi-scale net, the best ensemble and the best one for 1-16 spp
-# (`fast` alone above; docs/scoreboard.md)
-DEFAULT_MODELS = ("fast", "balanced", "high", "u-high", "fast+u-high", "fast+u-high-lowspp")
+# the flat presets, the fastest good multi-scale net, the ensemble fast+u-high and the default
+# (docs/scoreboard.md)
+DEFAULT_MODELS = ("fast", "balanced", "high", "u-high", "fast+u-high", SEPARATOR.join(DEFAULT_MODEL))
 METRICS = ("psnr", "relmse", "flip")
 
 
@@ -83,24 +83,27 @@ class Point:
         return metric_error(metric, getattr(self, metric))
 
 
-def model_labels(models: list[str]) -> dict[str, Path | list[Path]]:
+def model_labels(models: list[str]) -> dict[str, str | Path | list[str | Path]]:
     """Label -> checkpoint for each ``--models`` entry (preset name, else file stem; made unique;
-    an ensemble ``A+B``: its members' labels joined by ``+``, the list of their paths).
+    an ensemble ``A+B``: its members' labels joined by ``+``, the list of their paths; a member
+    limited to an spp range, ``u-high:17-``, keeps its spec as label and entry).
 
     Raises :class:`DenoiserError` naming the file when a preset's weights or a file are missing.
     """
-    labels: dict[str, Path | list[Path]] = {}
+    labels: dict[str, str | Path | list[str | Path]] = {}
     for name in models:
         members = ensemble_members(name)  # A+B: an ensemble
-        paths = [resolve_model(member) for member in members]
-        for path in paths:
+        resolved = resolve_members(name)  # (path, spp limits) of each
+        for path, _, _ in resolved:
             if not path.is_file():
                 raise DenoiserError(f"{path}: checkpoint not found")
-        label = SEPARATOR.join(n if n in PRESETS else p.stem for n, p in zip(members, paths))
+        specs = [str(m) if lo or hi else p for m, (p, lo, hi) in zip(members, resolved)]  # limits kept
+        label = SEPARATOR.join(str(m) if m in PRESETS or lo or hi else p.stem
+                               for m, (p, lo, hi) in zip(members, resolved))
         base, n = label, 2
         while label in labels or label in ("none", "oidn"):
             label, n = f"{base}-{n}", n + 1
-        labels[label] = paths[0] if len(paths) == 1 else paths
+        labels[label] = specs[0] if len(specs) == 1 else specs
     return labels
 
 

@@ -122,9 +122,14 @@ def test_auto_candidates_are_the_presets_with_weights(tmp_path: Path,
     write_tiny_checkpoint(tmp_path / "fast.ckpt")
     write_tiny_checkpoint(tmp_path / "high.ckpt", seed=1)
     assert set(budget_candidates("auto", RenderSettings(scene="unused.xml", max_memory_mb=64))) == {"fast", "high"}
-    write_tiny_checkpoint(tmp_path / "u-high.ckpt", seed=2)  # completes the ensemble fast+u-high
+    write_tiny_checkpoint(tmp_path / "u-high.ckpt", seed=2)
+    assert set(budget_candidates("auto", RenderSettings(scene="unused.xml", max_memory_mb=64))) == {"fast", "high"}
+    write_tiny_checkpoint(tmp_path / "u-high-lowspp.ckpt", seed=3, max_spp=16)  # completes the default
     found = budget_candidates("auto", RenderSettings(scene="unused.xml", max_memory_mb=64))
-    assert set(found) == {"fast+u-high", "fast", "high"} and len(found["fast+u-high"].members) == 2
+    default = "fast+u-high-lowspp+u-high:17-"
+    assert set(found) == {default, "fast", "high"}
+    assert [(m.path.name, m.min_spp, m.max_spp) for m in found[default].members] == [
+        ("fast.ckpt", 0, 0), ("u-high-lowspp.ckpt", 0, 16), ("u-high.ckpt", 17, 0)]
 
 
 @pytest.mark.parametrize("args", [["--model", "auto"], ["--time-budget", "5", "--spp", "4"],

@@ -11,7 +11,7 @@ from imaging.errors import DenoiserError
 from imaging.exr import write_exr
 from pipeline.cli import denoise_main
 from pipeline.denoise import DEFAULT_MODEL, Denoiser, ensemble_members
-from pipeline.ensemble import (COMBINE_BYTES_PER_PIXEL, weighted_sum, combine, combine_in_place, combine_weights,
+from pipeline.ensemble import (COMBINE_BYTES_PER_PIXEL, weighted_sum, spp_range, combine, combine_in_place, combine_weights,
                                split_spec, weight_bytes_per_pixel)
 from pipeline.noise_guard import clean_render
 from tests.test_denoise import write_tiny_checkpoint
@@ -169,6 +169,27 @@ def test_members_trained_for_an_spp_range_run_only_within_it(tmp_path: Path, two
     for spp, ran in ((1, ("flat", "low")), (8, ("flat", "low")), (12, ("flat",)), (16, ("flat", "high")),
                      (4096, ("flat", "high")), (None, ("flat",))):
         assert ens.denoise_array(noisy, variance=var, spp=spp).models == ran, spp
+
+
+def test_an_ensemble_spec_limits_a_member_to_an_spp_range(tmp_path: Path, two_models: tuple[Path, Path]) -> None:
+    """``MODEL:LO-HI`` (one end may be left out) runs that member only on LO..HI spp, within the range
+    its checkpoint was trained on; the default is built so; a file whose name looks like a range is
+    that file; a range with no end or LO > HI is a clear error."""
+    flat, unet = two_models
+    low = write_tiny_checkpoint(tmp_path / "low.ckpt", TINY_UNET, seed=3, max_spp=8)
+    ens = Denoiser([flat, f"{unet}:17-", f"{low}:4-"])
+    assert [(m.min_spp, m.max_spp) for m in ens.members] == [(0, 0), (17, 0), (4, 8)]
+    assert ens.label == "flat+unet:17-+low:4-"
+    _, noisy, var = _case(15, 18, seed=7)
+    for spp, ran in ((2, ("flat",)), (4, ("flat", "low")), (16, ("flat",)), (17, ("flat", "unet")), (None, ("flat",))):
+        assert ens.denoise_array(noisy, variance=var, spp=spp).models == ran, spp
+    assert Denoiser(f"{flat}+{unet}:-16").members[1].max_spp == 16
+    assert [spp_range(m) for m in DEFAULT_MODEL] == [("fast", 0, 0), ("u-high-lowspp", 0, 0), ("u-high", 17, 0)]
+    odd = write_tiny_checkpoint(tmp_path / "odd:1-2.ckpt")
+    assert Denoiser([flat, odd]).members[1].limit == (0, 0)
+    for bad in (f"{unet}:-", f"{unet}:9-4"):
+        with pytest.raises(DenoiserError, match="LO-HI"):
+            Denoiser(f"{flat}+{bad}")
 
 
 def test_ensemble_specs(tmp_path: Path, two_models: tuple[Path, Path]) -> None:

@@ -40,11 +40,12 @@ from model.synthetic import write_synthetic_dataset
 from model.transfer import HDR_MAX, get_transfer
 from pipeline.cli import denoise_main
 from pipeline.denoise import DEFAULT_MODEL, WEIGHTS_DIR, Denoiser
+from pipeline.ensemble import spp_range
 
 TINY = ModelConfig(layers=3, growth=4, init_features=8)
 RADIUS = receptive_radius(TINY)
 DEMO = Path(__file__).resolve().parents[1] / "scenes" / "examples" / "demo.xml"
-shipped = pytest.mark.skipif(not all((WEIGHTS_DIR / f"{m}.ckpt").exists() for m in DEFAULT_MODEL),
+shipped = pytest.mark.skipif(not all((WEIGHTS_DIR / f"{spp_range(m)[0]}.ckpt").exists() for m in DEFAULT_MODEL),
                              reason="no shipped weights")
 
 # Radiance values at the edges: zero, tiny, fireflies, beyond the float16 maximum, invalid.
