@@ -27,6 +27,7 @@ import json
 import os
 import platform
 import resource
+import shlex
 import subprocess
 import sys
 import time
@@ -73,9 +74,9 @@ def energy(den: Denoiser, names: list[str], res: tuple[int, int]) -> dict[str, A
         rows[name] = row
     zero = den.denoise_array(np.zeros((64, 64, 3), np.float32), spp=1).image
     constants = {}
-    r = den.margin
+    r = den.margin  # the interior: pixels that see no border
     for value in CONSTANTS:
-        interior = den.denoise_array(np.full((64, 64, 3), value, np.float32), spp=1).image[r:-r, r:-r]
+        interior = den.denoise_array(np.full((2 * r + 16, 2 * r + 16, 3), value, np.float32), spp=1).image[r:-r, r:-r]
         constants[f"{value:g}"] = {"mean_rel_error": float(interior.mean() / value - 1),
                                    "std_rel": float(interior.std() / value)}
     worst = max(abs(row[k] - 1) for row in rows.values() for k in row if k.startswith("ratio"))
@@ -177,6 +178,8 @@ def main() -> None:
     previous = json.loads(RESULTS.read_text()) if RESULTS.exists() else {}
     result = {k: v for k, v in previous.get(mode, {}).items() if k in PARTS}
     result.update({
+        "command": shlex.join(["python", "-m", "benchmarks.extremes", *sys.argv[1:]]),
+        "date": time.strftime("%Y-%m-%d %H:%M"), "parts_measured": sorted(parts),
         "mode": mode, "model": den.name, "model_sha256": den.sha256,
         "machine": f"{platform.machine()}, {os.cpu_count()} cores (load {os.getloadavg()[0]:.1f} at start)",
     })
