@@ -205,14 +205,15 @@ def budget_candidates(model: str | None, settings: RenderSettings) -> dict[str, 
     if model != "auto":
         den = make_denoiser(model, settings)
         return {den.label: den}
-    found = {name: [spp_range(str(member)) for member in ensemble_members(name)] for name in PRESET_ORDER}
-    found = {name: members for name, members in found.items()
-             if all((WEIGHTS_DIR / f"{model}.ckpt").exists() for model, _, _ in members)}
+    found = {}
+    for name in PRESET_ORDER:  # each member as its file's path, an spp range (``u-high:17-``) kept
+        models = [(spp_range(str(member))[0], str(member)) for member in ensemble_members(name)]
+        if all((WEIGHTS_DIR / f"{model}.ckpt").exists() for model, _ in models):
+            found[name] = [f"{WEIGHTS_DIR / model}.ckpt{member[len(model):]}" for model, member in models]
     if not found:
         raise BudgetError(f"--model auto: no preset weights in {WEIGHTS_DIR} "
                           f"({', '.join(n + '.ckpt' for n in PRESET_ORDER if len(ensemble_members(n)) == 1)})")
-    return {name: make_denoiser([str(WEIGHTS_DIR / f"{model}.ckpt") + (f":{lo or ''}-{hi or ''}" if lo or hi else "")
-                                 for model, lo, hi in members], settings) for name, members in found.items()}
+    return {name: make_denoiser(members, settings) for name, members in found.items()}
 
 
 def plan_run(budget_s: float, started: float, scene: Any, seed: int, aovs: Sequence[str],

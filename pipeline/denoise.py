@@ -239,6 +239,9 @@ class Denoiser:
         self.optimize = optimize
         self.members = [Network.load(path, optimize, precision, (lo, hi)) for path, lo, hi in members]
         for member in self.members:
+            if member.max_spp and member.min_spp > member.max_spp:
+                raise DenoiserError(f"{member.label}: the range leaves out every spp {member.path.name} "
+                                    "was trained on (it would never run)")
             if self.flips > 1 and member.config.aux_inputs:
                 raise DenoiserError(f"{member.path.name}: test-time flips need a model without albedo/normal inputs")
         first = self.members[0]  # what a single model's callers read: its file, config and network

@@ -190,6 +190,8 @@ def test_an_ensemble_spec_limits_a_member_to_an_spp_range(tmp_path: Path, two_mo
     for bad in (f"{unet}:-", f"{unet}:9-4"):
         with pytest.raises(DenoiserError, match="LO-HI"):
             Denoiser(f"{flat}+{bad}")
+    with pytest.raises(DenoiserError, match="would never run"):
+        Denoiser([flat, f"{low}:9-"])  # trained on <= 8 spp
 
 
 def test_ensemble_specs(tmp_path: Path, two_models: tuple[Path, Path]) -> None:
