@@ -308,7 +308,11 @@ def train_distributed(config: TrainConfig, rank: RankInfo, resume: bool = False,
             run, error = None, exc
         _agree_started(rank, error)
         try:
-            return run_training(run, progress if rank.primary else None)
+            result = run_training(run, progress if rank.primary else None)
+            # no rank tears the group down while another still uses it (seen once in CI: a rank
+            # aborting at exit, "terminate called without an active exception", after a complete run)
+            dist.barrier()
+            return result
         except RuntimeError as exc:  # gloo: "Connection closed by peer" etc.
             first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
             raise TrainingError(f"rank {rank.rank} lost contact with the other ranks at step {run.step} "
