@@ -4,7 +4,9 @@ For each size (128x128, 256x256, 1280x720, 1920x1080) and each model (presets wi
 weights and non-trivial BatchNorm statistics — weights do not change speed — or checkpoint
 files) it times what a user's call costs: :meth:`pipeline.denoise.Denoiser.denoise_array` on a
 render made of two halves (image + variance: sanitise, exposure, transfer, noise channels, tiles,
-the folded network, inverse, noise guard), the model loaded once as a user's program would, and
+the folded network, inverse, noise guard), as for a render of ``SPP`` (1) samples per pixel, so an
+ensemble whose members are limited to spp ranges runs its low-spp ones (the default: two networks
+at any spp), the model loaded once as a user's program would, and
 OIDN 2 colour-only (``pyoidn``) on the same image. Variants run round-robin, so a noisy neighbour
 slows them alike; the median of ``--repeat`` runs is reported with the load average seen (a busy
 machine makes every number worse and small images worst: torch's two threads wait for each
@@ -54,19 +56,26 @@ from model.checkpoint import save_checkpoint
 from model.config import PRESETS, preset
 from model.precision import PRECISIONS, native_bfloat16
 from model.unet import macs_per_pixel
-from pipeline.denoise import Denoiser, ensemble_members
-from pipeline.ensemble import SEPARATOR
+from pipeline.denoise import DEFAULT_MODEL, Denoiser, ensemble_members, shipped_members
+from pipeline.ensemble import SEPARATOR, spp_range
 from pipeline.oidn import oidn_available, oidn_denoise
 
 RESULTS = Path(__file__).resolve().parent / "results" / "inference.json"
 SIZES = ((128, 128), (256, 256), (1280, 720), (1920, 1080))
+SPP = 1  # the spp each call is made for: an ensemble's low-spp members run (the most it costs)
 
 
 def _checkpoint(name: str, folder: Path) -> Path:
     """A preset with random weights (as after training: BN statistics, a non-zero output conv);
-    an ensemble ``A+B`` (:mod:`pipeline.ensemble`) the ``+``-joined paths of its members."""
+    an ensemble ``A+B`` (:mod:`pipeline.ensemble`) the ``+``-joined paths of its members;
+    ``default`` the shipped default (:data:`pipeline.denoise.DEFAULT_MODEL`)."""
+    if name == "default":  # the shipped default ensemble, its members' own weights and spp ranges
+        return Path(SEPARATOR.join(shipped_members(SEPARATOR.join(DEFAULT_MODEL))))
     if len(ensemble_members(name)) > 1:
         return Path(SEPARATOR.join(str(_checkpoint(part, folder)) for part in ensemble_members(name)))
+    model = spp_range(name)[0]
+    if model != name:  # a member limited to an spp range: ``u-fast:-16``
+        return Path(f"{_checkpoint(model, folder)}{name[len(model):]}")
     if name not in PRESETS:
         return Path(name)
     torch.manual_seed(0)
@@ -101,7 +110,7 @@ def _macs(config: Any) -> float:
 def measure_size(width: int, height: int, models: dict[str, Denoiser], repeat: int) -> dict[str, Any]:
     """Median seconds of every model and of OIDN on one image size (round-robin over repeats)."""
     img, var = _render(width, height)
-    variants = {name: (lambda d=den: d.denoise_array(img, variance=var)) for name, den in models.items()}
+    variants = {name: (lambda d=den: d.denoise_array(img, variance=var, spp=SPP)) for name, den in models.items()}
     if oidn_available():
         variants["oidn"] = lambda: oidn_denoise(img)
     for fn in variants.values():  # warm-up: first-call allocations and kernel selection
@@ -129,7 +138,7 @@ def stages(den: Denoiser, width: int, height: int, repeat: int) -> dict[str, flo
     img, var = _render(width, height)
     transfer = get_transfer(den.config.transfer)
     x = torch.rand(1, den.config.image_channels, height, width)
-    out = den.denoise_array(img, variance=var).image
+    out = den.denoise_array(img, variance=var, spp=SPP).image
     parts = {
         "count_invalid": lambda: count_invalid(img),
         "exposure": lambda: exposure_scale(img),
@@ -138,7 +147,7 @@ def stages(den: Denoiser, width: int, height: int, repeat: int) -> dict[str, flo
         "network": lambda: den.net(x),
         "guard": lambda: guard_in_place(img, out.copy(), var, np.empty((height, width, 1), np.float32),
                                         den.max_bytes),
-        "whole call": lambda: den.denoise_array(img, variance=var),
+        "whole call": lambda: den.denoise_array(img, variance=var, spp=SPP),
     }
     result = {}
     with torch.inference_mode():
@@ -212,8 +221,8 @@ def main() -> None:
     p.add_argument("--quick", action="store_true", help="256x256 only, one run, one process")
     p.add_argument("--sizes", type=size_list, default=list(SIZES))
     p.add_argument("--models", default="u-fast,u-balanced,u-high,fast",
-                   help="preset names (random weights), checkpoint files or ensembles A+B; NAME@PRECISION "
-                   "runs that model in that float format only")
+                   help="preset names (random weights), checkpoint files, ensembles A+B or 'default' (the "
+                        "shipped default); NAME@PRECISION runs that model in that float format only")
     p.add_argument("--precisions", default="float32,bfloat16",
                    help="float formats of the networks (model.precision.PRECISIONS)")
     p.add_argument("--repeat", type=int, default=5)
@@ -241,7 +250,7 @@ def main() -> None:
         if not {p for ps in fixed.values() for p in ps} <= set(PRECISIONS):
             raise SystemExit(f"inference: a model's @PRECISION takes {', '.join(PRECISIONS)}, got {args.models!r}")
         missing = [name for name, path in files.items()
-                   if not all(Path(p).is_file() for p in ensemble_members(path))]
+                   if not all(Path(spp_range(p)[0]).is_file() for p in ensemble_members(path))]
         if missing:
             raise SystemExit(f"inference: not a preset nor a checkpoint file: {', '.join(missing)}")
         measured = []

@@ -31,7 +31,7 @@ import numpy as np
 from imaging.errors import DenoiserError
 from imaging.render import render_loaded
 from imaging.tiling import Core, plan_tiles
-from pipeline.denoise import DEFAULT_MODEL, WEIGHTS_DIR, Denoiser, ensemble_members
+from pipeline.denoise import DEFAULT_MODEL, WEIGHTS_DIR, Denoiser, ensemble_members, shipped_members
 from pipeline.ensemble import SEPARATOR, spp_range
 from pipeline.evaluation import RenderSettings, make_denoiser
 from pipeline.pareto import error_at_spp, metric_error
@@ -206,10 +206,10 @@ def budget_candidates(model: str | None, settings: RenderSettings) -> dict[str, 
         den = make_denoiser(model, settings)
         return {den.label: den}
     found = {}
-    for name in PRESET_ORDER:  # each member as its file's path, an spp range (``u-high:17-``) kept
-        models = [(spp_range(str(member))[0], str(member)) for member in ensemble_members(name)]
-        if all((WEIGHTS_DIR / f"{model}.ckpt").exists() for model, _ in models):
-            found[name] = [f"{WEIGHTS_DIR / model}.ckpt{member[len(model):]}" for model, member in models]
+    for name in PRESET_ORDER:
+        members = shipped_members(name, WEIGHTS_DIR)
+        if all(Path(spp_range(member)[0]).exists() for member in members):
+            found[name] = members
     if not found:
         raise BudgetError(f"--model auto: no preset weights in {WEIGHTS_DIR} "
                           f"({', '.join(n + '.ckpt' for n in PRESET_ORDER if len(ensemble_members(n)) == 1)})")

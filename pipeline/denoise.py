@@ -72,6 +72,16 @@ def resolve_members(spec: str | Path | Sequence[str | Path] | None) -> list[tupl
     return members
 
 
+def shipped_members(spec: str, weights: Path = WEIGHTS_DIR) -> list[str]:
+    """The members of ``spec``, shipped checkpoints by name (``fast+u-high:17-``), as the paths of
+    their files in ``weights``, each member's spp range kept (``.../u-high.ckpt:17-``)."""
+    paths = []
+    for member in map(str, ensemble_members(spec)):
+        model = spp_range(member)[0]
+        paths.append(f"{weights / model}.ckpt{member[len(model):]}")
+    return paths
+
+
 def ensemble_members(spec: str | Path | Sequence[str | Path] | None) -> list[str | Path]:
     """The models of a ``--model`` value: None -> :data:`DEFAULT_MODEL`'s; ``A+B[+...]``
     (:mod:`pipeline.ensemble`) names several, unless it is an existing file's path; a list or tuple
