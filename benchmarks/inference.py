@@ -57,7 +57,7 @@ from model.config import PRESETS, preset
 from model.precision import PRECISIONS, native_bfloat16
 from model.unet import macs_per_pixel
 from pipeline.denoise import DEFAULT_MODEL, Denoiser, ensemble_members, shipped_members
-from pipeline.ensemble import SEPARATOR, spp_range
+from pipeline.ensemble import SEPARATOR, range_suffix, spp_range
 from pipeline.oidn import oidn_available, oidn_denoise
 
 RESULTS = Path(__file__).resolve().parent / "results" / "inference.json"
@@ -73,9 +73,9 @@ def _checkpoint(name: str, folder: Path) -> Path:
         return Path(SEPARATOR.join(shipped_members(SEPARATOR.join(DEFAULT_MODEL))))
     if len(ensemble_members(name)) > 1:
         return Path(SEPARATOR.join(str(_checkpoint(part, folder)) for part in ensemble_members(name)))
-    model = spp_range(name)[0]
+    model, lo, hi = spp_range(name)
     if model != name:  # a member limited to an spp range: ``u-fast:-16``
-        return Path(f"{_checkpoint(model, folder)}{name[len(model):]}")
+        return Path(f"{_checkpoint(model, folder)}{range_suffix(lo, hi)}")
     if name not in PRESETS:
         return Path(name)
     torch.manual_seed(0)

@@ -21,7 +21,7 @@ from imaging.blocks import block_rows
 from imaging.errors import DenoiserError
 from imaging.hashing import file_sha256
 from imaging.tiling import core_for_budget, cores_for_budget
-from pipeline.ensemble import SEPARATOR, combine_in_place, split_spec, spp_range
+from pipeline.ensemble import SEPARATOR, combine_in_place, range_suffix, split_spec, spp_range
 from pipeline.noise_guard import DEFAULT_STRENGTH, guard_in_place, strength_for
 
 if TYPE_CHECKING:
@@ -77,8 +77,8 @@ def shipped_members(spec: str, weights: Path = WEIGHTS_DIR) -> list[str]:
     their files in ``weights``, each member's spp range kept (``.../u-high.ckpt:17-``)."""
     paths = []
     for member in map(str, ensemble_members(spec)):
-        model = spp_range(member)[0]
-        paths.append(f"{weights / model}.ckpt{member[len(model):]}")
+        model, lo, hi = spp_range(member)
+        paths.append(f"{weights / model}.ckpt{range_suffix(lo, hi)}")
     return paths
 
 
@@ -153,8 +153,12 @@ class Network:
     @property
     def label(self) -> str:
         """Its file's stem, with the range its spec limits it to (``u-high:17-``)."""
-        lo, hi = self.limit
-        return self.path.stem + (f":{lo or ''}-{hi or ''}" if lo or hi else "")
+        return self.path.stem + range_suffix(*self.limit)
+
+    @property
+    def spec(self) -> str:
+        """Its file's path, with the range its spec limits it to: what loads it again as it is."""
+        return f"{self.path}{range_suffix(*self.limit)}"
 
     def covers(self, spp: int | None) -> bool:
         """True if it runs on renders of ``spp`` samples per pixel: always for a model trained on every

@@ -179,3 +179,8 @@ def spp_range(member: str) -> tuple[str, int, int]:
         raise ValueError(f"model ensemble member {member!r}: expected MODEL:LO-HI spp with LO <= HI "
                          "(one end may be left out)")
     return match["model"], lo, hi
+
+
+def range_suffix(lo: int, hi: int) -> str:
+    """The ``:LO-HI`` that :func:`spp_range` reads (an end of 0 left out); ``""`` for no limit."""
+    return f":{lo or ''}-{hi or ''}" if lo or hi else ""

@@ -11,7 +11,7 @@ from imaging.errors import DenoiserError
 from imaging.exr import write_exr
 from pipeline.cli import denoise_main
 from pipeline.denoise import DEFAULT_MODEL, Denoiser, ensemble_members
-from pipeline.ensemble import (COMBINE_BYTES_PER_PIXEL, weighted_sum, spp_range, combine, combine_in_place, combine_weights,
+from pipeline.ensemble import (COMBINE_BYTES_PER_PIXEL, weighted_sum, range_suffix, spp_range, combine, combine_in_place, combine_weights,
                                split_spec, weight_bytes_per_pixel)
 from pipeline.noise_guard import clean_render
 from tests.test_denoise import write_tiny_checkpoint
@@ -180,6 +180,9 @@ def test_an_ensemble_spec_limits_a_member_to_an_spp_range(tmp_path: Path, two_mo
     ens = Denoiser([flat, f"{unet}:17-", f"{low}:4-"])
     assert [(m.min_spp, m.max_spp) for m in ens.members] == [(0, 0), (17, 0), (4, 8)]
     assert ens.label == "flat+unet:17-+low:4-"
+    assert [m.spec for m in ens.members] == [str(flat), f"{unet}:17-", f"{low}:4-"]  # loads them again as they are
+    assert [spp_range(f"m{range_suffix(lo, hi)}") for lo, hi in ((0, 0), (17, 0), (0, 16), (4, 8))] == [
+        ("m", 0, 0), ("m", 17, 0), ("m", 0, 16), ("m", 4, 8)]
     _, noisy, var = _case(15, 18, seed=7)
     for spp, ran in ((2, ("flat",)), (4, ("flat", "low")), (16, ("flat",)), (17, ("flat", "unet")), (None, ("flat",))):
         assert ens.denoise_array(noisy, variance=var, spp=spp).models == ran, spp
