@@ -172,7 +172,7 @@ def main() -> None:
         den = Denoiser(args.model, max_memory_mb=args.max_memory_mb)
     except DenoiserError as exc:
         raise SystemExit(f"extremes: {exc}") from None
-    model = SEPARATOR.join(str(m.path) for m in den.members)
+    model = SEPARATOR.join(m.spec for m in den.members)  # the memory child loads the same members and ranges
     mode = "quick" if args.quick else "full"
     names = ["demo"] + ([] if args.quick else [s.name for s in eval_scenes(EVAL_SCENES)])
     previous = json.loads(RESULTS.read_text()) if RESULTS.exists() else {}
