@@ -282,53 +282,36 @@ def test_extra_data_trains_and_validates_on_both_datasets(noisy_dataset: Path, t
     assert {p.scene for p in pairs} == {0, 1, DATASET_ID_STRIDE + 1}
 
 
-def test_max_spp_trains_and_validates_on_the_noisier_renders_only(noisy_dataset: Path, tmp_path: Path,
-                                                                   capsys: pytest.CaptureFixture) -> None:
-    """--max-spp: the pairs and validation images above it are left out (converged pairs kept when
-    asked); the choice is recorded; a limit below every render is a one-line error."""
+@pytest.mark.parametrize("limit, recorded, kept_spp, errors", [
+    (["--max-spp", "4"], {"max_spp": 4, "min_spp": 0}, 2,  # scene 2 at 2 spp, not at 8
+     [(["--max-spp", "1"], "no render at <= 1 spp")]),
+    (["--min-spp", "4"], {"min_spp": 4, "max_spp": 0}, 8,
+     [(["--min-spp", "16"], "no render at >= 16 spp"), (["--min-spp", "8", "--max-spp", "4"], "must not exceed max_spp")]),
+])
+def test_spp_limits_train_and_validate_on_the_renders_within(noisy_dataset: Path, tmp_path: Path,
+                                                             capsys: pytest.CaptureFixture, limit: list[str],
+                                                             recorded: dict[str, int], kept_spp: int,
+                                                             errors: list[tuple[list[str], str]]) -> None:
+    """--max-spp / --min-spp: the pairs and validation images outside the limit are left out
+    (converged pairs kept when asked); the choice is recorded; a limit that leaves no render, or
+    --min-spp above --max-spp, is a one-line error."""
     run = tmp_path / "run"
     flags = ["--arch", "dense_unet", "--levels", "1", "--layers", "1", "--growth", "4", "--width", "8",
              "--transfer", "pu", "--patch", "32", "--batch", "2", "--log-every", "1", "--val-every", "2",
              "--no-progress", "--no-oidn", "--converged-pairs"]
-    assert main(["--data", str(noisy_dataset), "--out", str(run), "--steps", "2", "--max-spp", "4", *flags]) == 0
+    assert main(["--data", str(noisy_dataset), "--out", str(run), "--steps", "2", *limit, *flags]) == 0
     vals = [r for r in _log(run) if r["type"] == "val"]
-    assert vals[-1]["images"] == 1 and set(vals[-1]["per_spp"]) == {"2"}  # scene 2 at 2 spp, not at 8
+    assert vals[-1]["images"] == 1 and set(vals[-1]["per_spp"]) == {str(kept_spp)}
     meta = read_checkpoint(run / "last.ckpt").header
-    assert meta["train_config"]["max_spp"] == 4
+    assert {k: meta["train_config"][k] for k in recorded} == recorded
     from model.dataset import CONVERGED_SPP
     from model.train import _Run
     from model.train_config import TrainConfig
     pairs = _Run(TrainConfig.from_dict({**meta["train_config"], "out": str(tmp_path / "r2")}), False).pairs
-    assert sorted((p.scene, p.spp) for p in pairs) == [(0, CONVERGED_SPP), (0, 2), (1, CONVERGED_SPP), (1, 2)]
-    capsys.readouterr()
-    assert main(["--data", str(noisy_dataset), "--out", str(tmp_path / "r3"), "--steps", "1", "--max-spp", "1",
-                 *flags]) == 1
-    err = capsys.readouterr().err.strip()
-    assert len(err.splitlines()) == 1 and "no render at <= 1 spp" in err
-
-
-def test_min_spp_trains_and_validates_on_the_cleaner_renders_only(noisy_dataset: Path, tmp_path: Path,
-                                                                   capsys: pytest.CaptureFixture) -> None:
-    """--min-spp: the pairs and validation images below it are left out (converged pairs kept when
-    asked); recorded; a limit above every render, or above --max-spp, is a one-line error."""
-    run = tmp_path / "run"
-    flags = ["--arch", "dense_unet", "--levels", "1", "--layers", "1", "--growth", "4", "--width", "8",
-             "--transfer", "pu", "--patch", "32", "--batch", "2", "--log-every", "1", "--val-every", "2",
-             "--no-progress", "--no-oidn", "--converged-pairs"]
-    assert main(["--data", str(noisy_dataset), "--out", str(run), "--steps", "2", "--min-spp", "4", *flags]) == 0
-    vals = [r for r in _log(run) if r["type"] == "val"]
-    assert vals[-1]["images"] == 1 and set(vals[-1]["per_spp"]) == {"8"}
-    meta = read_checkpoint(run / "last.ckpt").header
-    assert meta["train_config"]["min_spp"] == 4 and meta["train_config"]["max_spp"] == 0
-    from model.dataset import CONVERGED_SPP
-    from model.train import _Run
-    from model.train_config import TrainConfig
-    pairs = _Run(TrainConfig.from_dict({**meta["train_config"], "out": str(tmp_path / "r2")}), False).pairs
-    assert sorted((p.scene, p.spp) for p in pairs) == [(0, CONVERGED_SPP), (0, 8), (1, CONVERGED_SPP), (1, 8)]
-    for limits, message in ((["--min-spp", "16"], "no render at >= 16 spp"),
-                            (["--min-spp", "8", "--max-spp", "4"], "must not exceed max_spp")):
+    assert sorted((p.scene, p.spp) for p in pairs) == [(0, CONVERGED_SPP), (0, kept_spp), (1, CONVERGED_SPP),
+                                                        (1, kept_spp)]
+    for bad, message in errors:
         capsys.readouterr()
-        assert main(["--data", str(noisy_dataset), "--out", str(tmp_path / "r3"), "--steps", "1", *limits,
-                     *flags]) == 1
+        assert main(["--data", str(noisy_dataset), "--out", str(tmp_path / "r3"), "--steps", "1", *bad, *flags]) == 1
         err = capsys.readouterr().err.strip()
         assert len(err.splitlines()) == 1 and message in err, err
