@@ -27,6 +27,7 @@ from model.dataset import ValImage, load_val_images, read_manifest
 from model.train import DATASET_ID_STRIDE
 from model.validate import Validator
 from pipeline.denoise import DEFAULT_MODEL, resolve_model
+from pipeline.ensemble import spp_range
 
 
 def val_images(folders: list[Path], max_scenes: int | None, noise: bool) -> list[ValImage]:
@@ -116,9 +117,10 @@ def build_parser() -> OneLineParser:
     p = OneLineParser(prog="python -m benchmarks.validation", description=__doc__.splitlines()[0])
     p.add_argument("--data", type=Path, action="append", required=True,
                    help="dataset folder (repeatable): its 'val' scenes are scored")
-    p.add_argument("--models", type=name_list, default=DEFAULT_MODEL,
+    members = tuple(spp_range(m)[0] for m in DEFAULT_MODEL)  # each on every spp, without its range
+    p.add_argument("--models", type=name_list, default=members,
                    help="comma-separated presets, checkpoints or NAME=CHECKPOINT, each scored alone "
-                        f"(default: the default ensemble's members, {','.join(DEFAULT_MODEL)})")
+                        f"(default: the default ensemble's members, {','.join(members)})")
     p.add_argument("--max-scenes", type=positive_int, help="only scenes with index below this")
     p.add_argument("--no-oidn", action="store_true", help="skip the OIDN baseline")
     p.add_argument("--out", type=Path, default=RESULTS)

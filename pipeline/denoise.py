@@ -28,9 +28,10 @@ if TYPE_CHECKING:
     from imaging.render import RenderResult
 
 WEIGHTS_DIR = Path(__file__).resolve().parents[1] / "model" / "weights"
-# The model when none is named: an ensemble of shipped checkpoints, u-high only above 16 spp
-# (docs/scoreboard.md, "The default").
-DEFAULT_MODEL = ("fast", "u-high-lowspp", "u-high:17-")
+# The model when none is named: an ensemble of shipped checkpoints, two networks at any known spp
+# (fast-lowspp + u-high-lowspp up to 8 spp, fast + u-high-lowspp at 9-16, fast + u-high above);
+# fast, the first, alone where the spp is unknown (docs/scoreboard.md, "The default").
+DEFAULT_MODEL = ("fast:9-", "fast-lowspp:-8", "u-high-lowspp", "u-high:17-")
 DEFAULT_MAX_MEMORY_MB = 1024
 
 
@@ -295,9 +296,9 @@ class Denoiser:
 
     def active(self, spp: int | None) -> list[Network]:
         """The members that denoise a render of ``spp`` samples per pixel (None: unknown): those
-        trained on renders of that many spp (:meth:`Network.covers`; with the spp unknown, those
-        trained on every spp), or all if none was."""
-        return [m for m in self.members if m.covers(spp)] or list(self.members)
+        meant for renders of that many spp (:meth:`Network.covers`; with the spp unknown, those
+        trained on every spp and not limited), else the first member alone: the spec's fallback."""
+        return [m for m in self.members if m.covers(spp)] or [self.members[0]]
 
     def ensemble_record(self) -> dict[str, Any]:
         """For an ensemble, what a run's record adds beside the first model's config:

@@ -7,11 +7,13 @@ from pathlib import Path
 import pytest
 import torch
 
-from benchmarks.validation import main, score
+from benchmarks.validation import build_parser, main, model_specs, score
 from model.architectures import build_model
 from model.checkpoint import save_checkpoint
 from model.config import ModelConfig
 from model.synthetic import write_synthetic_dataset
+from pipeline.denoise import DEFAULT_MODEL
+from pipeline.ensemble import spp_range
 
 IDENTITY = ModelConfig(layers=2, growth=4, init_features=8, transfer="pu", output="residual")
 
@@ -78,3 +80,9 @@ def test_the_command_writes_json_and_table_and_fails_in_one_line(data: tuple[Pat
     assert main(["--data", str(tmp_path / "missing"), "--models", str(ckpt)]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "manifest.jsonl: not found" in err[0]
+
+
+def test_the_default_models_are_the_shipped_default_members_without_their_ranges() -> None:
+    specs = model_specs(build_parser().parse_args(["--data", "d"]).models)
+    assert list(specs) == [spp_range(m)[0] for m in DEFAULT_MODEL]
+    assert all(path.is_file() for path in specs.values()), specs

@@ -135,7 +135,7 @@ def test_ensemble_denoiser_combines_its_members_outputs(two_models: tuple[Path, 
 def test_a_member_trained_for_low_spp_runs_only_there(tmp_path: Path, two_models: tuple[Path, Path]) -> None:
     """A member whose checkpoint was trained on renders of <= 8 spp (``train --max-spp 8``) joins
     the ensemble at 1-8 spp; above, or where the spp is unknown, the others run alone, exactly as
-    without it; an ensemble of such members only runs them all."""
+    without it; in an ensemble of such members only, the first runs alone there (the spec's fallback)."""
     flat, _ = two_models
     low = write_tiny_checkpoint(tmp_path / "low.ckpt", TINY_UNET, seed=3, max_spp=8)
     truth, noisy, var = _case(21, 19, seed=5)
@@ -152,8 +152,9 @@ def test_a_member_trained_for_low_spp_runs_only_there(tmp_path: Path, two_models
         high = ens.denoise_array(noisy, variance=var, strength=2.0, spp=spp)
         assert high.models == ("flat",)
         np.testing.assert_array_equal(high.image, alone.denoise_array(noisy, variance=var, strength=2.0).image)
-    assert Denoiser([low, low]).denoise_array(noisy, spp=64).models == ("low", "low")
-    assert Denoiser([low, low]).denoise_array(noisy).models == ("low", "low")
+    assert Denoiser([low, flat]).denoise_array(noisy, spp=64).models == ("flat",)
+    assert Denoiser([low, low]).denoise_array(noisy, spp=64).models == ("low",)
+    assert Denoiser([low, low]).denoise_array(noisy).models == ("low",)
 
 
 def test_members_trained_for_an_spp_range_run_only_within_it(tmp_path: Path, two_models: tuple[Path, Path]) -> None:
@@ -173,8 +174,9 @@ def test_members_trained_for_an_spp_range_run_only_within_it(tmp_path: Path, two
 
 def test_an_ensemble_spec_limits_a_member_to_an_spp_range(tmp_path: Path, two_models: tuple[Path, Path]) -> None:
     """``MODEL:LO-HI`` (one end may be left out) runs that member only on LO..HI spp, within the range
-    its checkpoint was trained on; the default is built so; a file whose name looks like a range is
-    that file; a range with no end or LO > HI is a clear error."""
+    its checkpoint was trained on; where no member is meant for the spp the first runs alone; the
+    default is built so; a file whose name looks like a range is that file; a range with no end or
+    LO > HI is a clear error."""
     flat, unet = two_models
     low = write_tiny_checkpoint(tmp_path / "low.ckpt", TINY_UNET, seed=3, max_spp=8)
     ens = Denoiser([flat, f"{unet}:17-", f"{low}:4-"])
@@ -187,7 +189,12 @@ def test_an_ensemble_spec_limits_a_member_to_an_spp_range(tmp_path: Path, two_mo
     for spp, ran in ((2, ("flat",)), (4, ("flat", "low")), (16, ("flat",)), (17, ("flat", "unet")), (None, ("flat",))):
         assert ens.denoise_array(noisy, variance=var, spp=spp).models == ran, spp
     assert Denoiser(f"{flat}+{unet}:-16").members[1].max_spp == 16
-    assert [spp_range(m) for m in DEFAULT_MODEL] == [("fast", 0, 0), ("u-high-lowspp", 0, 0), ("u-high", 17, 0)]
+    assert [spp_range(m) for m in DEFAULT_MODEL] == [("fast", 9, 0), ("fast-lowspp", 0, 8), ("u-high-lowspp", 0, 0),
+                                                      ("u-high", 17, 0)]
+    # where no member is meant for the spp (the spp unknown and every member limited), the first runs alone
+    fallback = Denoiser([f"{flat}:9-", f"{low}:-4", f"{unet}:17-"])
+    for spp, ran in ((2, ("low",)), (8, ("flat",)), (9, ("flat",)), (17, ("flat", "unet")), (None, ("flat",))):
+        assert fallback.denoise_array(noisy, variance=var, spp=spp).models == ran, spp
     odd = write_tiny_checkpoint(tmp_path / "odd:1-2.ckpt")
     assert Denoiser([flat, odd]).members[1].limit == (0, 0)
     for bad in (f"{unet}:-", f"{unet}:9-4"):
