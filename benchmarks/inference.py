@@ -56,7 +56,7 @@ from model.checkpoint import save_checkpoint
 from model.config import PRESETS, preset
 from model.precision import PRECISIONS, native_bfloat16
 from model.unet import macs_per_pixel
-from pipeline.denoise import DEFAULT_MODEL, Denoiser, ensemble_members, shipped_members
+from pipeline.denoise import DEFAULT_MODEL, Denoiser, ensemble_members, resolve_members, shipped_members
 from pipeline.ensemble import SEPARATOR, range_suffix, spp_range
 from pipeline.oidn import oidn_available, oidn_denoise
 
@@ -250,7 +250,7 @@ def main() -> None:
         if not {p for ps in fixed.values() for p in ps} <= set(PRECISIONS):
             raise SystemExit(f"inference: a model's @PRECISION takes {', '.join(PRECISIONS)}, got {args.models!r}")
         missing = [name for name, path in files.items()
-                   if not all(Path(spp_range(p)[0]).is_file() for p in ensemble_members(path))]
+                   if not all(p.is_file() for p, _, _ in resolve_members(path))]
         if missing:
             raise SystemExit(f"inference: not a preset nor a checkpoint file: {', '.join(missing)}")
         measured = []

@@ -31,8 +31,8 @@ import numpy as np
 from imaging.errors import DenoiserError
 from imaging.render import render_loaded
 from imaging.tiling import Core, plan_tiles
-from pipeline.denoise import DEFAULT_MODEL, WEIGHTS_DIR, Denoiser, ensemble_members, shipped_members
-from pipeline.ensemble import SEPARATOR, spp_range
+from pipeline.denoise import DEFAULT_MODEL, WEIGHTS_DIR, Denoiser, ensemble_members, resolve_members, shipped_members
+from pipeline.ensemble import SEPARATOR
 from pipeline.evaluation import RenderSettings, make_denoiser
 from pipeline.pareto import error_at_spp, metric_error
 
@@ -40,8 +40,8 @@ DENOISE_SHARE = 1.0 / 3.0
 PROBE_SHARE = 0.05
 MAX_SPP = 1 << 16
 # Best quality first, as measured on ../shared/eval-scenes (docs/scoreboard.md): the default
-# ensemble (pipeline/ensemble.py; `fast+u-high` above 16 spp, `fast+u-high-lowspp` up to 16) is above
-# `fast` at every spp for 1.1-1.8x its time; the shipped `fast` is level with `balanced` at 16 spp and
+# ensemble (pipeline/denoise.py's DEFAULT_MODEL: two networks at any known spp, `fast+u-high` above
+# 16 spp) is above `fast` at every spp for 1.1-1.8x its time; the shipped `fast` is level with `balanced` at 16 spp and
 # ahead at 128 spp, `high` last — and `fast` is the cheapest of the flat presets.
 PRESET_ORDER = (SEPARATOR.join(DEFAULT_MODEL), "fast", "balanced", "high")
 DEFAULT_CURVES = WEIGHTS_DIR / "tradeoff.json"
@@ -208,7 +208,7 @@ def budget_candidates(model: str | None, settings: RenderSettings) -> dict[str, 
     found = {}
     for name in PRESET_ORDER:
         members = shipped_members(name, WEIGHTS_DIR)
-        if all(Path(spp_range(member)[0]).exists() for member in members):
+        if all(path.exists() for path, _, _ in resolve_members(members)):
             found[name] = members
     if not found:
         raise BudgetError(f"--model auto: no preset weights in {WEIGHTS_DIR} "
