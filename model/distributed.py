@@ -37,6 +37,7 @@ from __future__ import annotations
 import ctypes
 import dataclasses
 import datetime
+import gc
 import inspect
 import logging
 import os
@@ -300,6 +301,7 @@ def train_distributed(config: TrainConfig, rank: RankInfo, resume: bool = False,
     _stop_with_launcher()
     torch.set_num_threads(choose_threads(config.threads, rank.local_world).count)
     dist.init_process_group(BACKEND, timeout=TIMEOUT)
+    run: RankRun | None = None
     try:
         try:
             run = RankRun(config, resume, rank)
@@ -309,15 +311,19 @@ def train_distributed(config: TrainConfig, rank: RankInfo, resume: bool = False,
         _agree_started(rank, error)
         try:
             result = run_training(run, progress if rank.primary else None)
-            # no rank tears the group down while another still uses it (seen once in CI: a rank
-            # aborting at exit, "terminate called without an active exception", after a complete run)
-            dist.barrier()
+            dist.barrier()  # no rank tears the group down while another still uses it
             return result
         except RuntimeError as exc:  # gloo: "Connection closed by peer" etc.
             first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
             raise TrainingError(f"rank {rank.rank} lost contact with the other ranks at step {run.step} "
                                 f"({first[:200]}); {last_checkpoint(Path(config.out), resume_hint)}") from None
     finally:
+        # The DDP wrapper's reducer holds the process group and the run sits in reference cycles
+        # (bound hooks), so without this the group would be torn down by the garbage collector,
+        # possibly at interpreter exit: a rank once aborted there after a complete run ("terminate
+        # called without an active exception", CI). Free both now, then leave the group.
+        del run
+        gc.collect()
         dist.destroy_process_group()
 
 

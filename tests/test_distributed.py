@@ -306,3 +306,31 @@ def test_launcher_reports_threads_from_affinity_and_keeps_an_explicit_omp(datase
     explicit = _train("--out", str(tmp_path / "explicit"), *args, env={**base, "OMP_NUM_THREADS": "3"})
     assert explicit.returncode == 0, explicit.stderr
     assert "train: 2 ranks, 3 torch threads each (OMP_NUM_THREADS=3 in the environment)" in explicit.stdout
+
+
+def test_a_rank_frees_its_ddp_model_before_it_leaves_the_process_group(dataset: Path, tmp_path: Path,
+                                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    """train_distributed (one rank, in this process) releases the run and its DDP wrapper, whose reducer
+    holds the process group, before it destroys the group: the group is not left to be torn down by
+    the garbage collector at interpreter exit, where a rank once aborted after a complete run
+    ("terminate called without an active exception")."""
+    import socket
+    import weakref
+
+    import torch.distributed as dist
+
+    import model.distributed as ddp
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    for key, value in {"MASTER_ADDR": "127.0.0.1", "MASTER_PORT": str(port), "RANK": "0", "WORLD_SIZE": "1"}.items():
+        monkeypatch.setenv(key, value)
+    monkeypatch.setattr(ddp, "_stop_with_launcher", lambda: None)  # no parent-death signal for pytest
+    wrapped: list[weakref.ref] = []
+    network = ddp.RankRun.network
+    monkeypatch.setattr(ddp.RankRun, "network", lambda self: wrapped.append(weakref.ref(w := network(self))) or w)
+    config = TrainConfig.from_dict({**TINY, "data": str(dataset), "out": str(tmp_path / "run"), "steps": 2})
+    result = ddp.train_distributed(config, RankInfo(rank=0, world=1))
+    assert result.step == 2 and len(wrapped) == 1
+    assert wrapped[0]() is None and not dist.is_initialized()
