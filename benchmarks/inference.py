@@ -107,6 +107,12 @@ def _macs(config: Any) -> float:
         9 * (c0 + n * k) * 3
 
 
+def denoiser_macs(den: Denoiser) -> float:
+    """MACs per pixel of a call at the benchmark's spp: the members that run at :data:`SPP`
+    (an ensemble member limited to other spp costs nothing there)."""
+    return sum(_macs(member.config) for member in den.active(SPP))
+
+
 def measure_size(width: int, height: int, models: dict[str, Denoiser], repeat: int) -> dict[str, Any]:
     """Median seconds of every model and of OIDN on one image size (round-robin over repeats)."""
     img, var = _render(width, height)
@@ -189,7 +195,7 @@ def measure_process(spec: dict[str, Any]) -> dict[str, Any]:
     models = {_key(name, prec): Denoiser(path, threads=spec["threads"] or None, precision=prec)
               for name, path in spec["files"].items() for prec in spec["precisions"].get(name, spec["all"])}
     out: dict[str, Any] = {"models": list(models), "torch_threads": torch.get_num_threads(),
-                           "macs_per_pixel": {n: sum(_macs(k.config) for k in m.members) for n, m in models.items()},
+                           "macs_per_pixel": {n: denoiser_macs(m) for n, m in models.items()},
                            "sizes": {}}
     for w, h in spec["sizes"]:
         row = out["sizes"][f"{w}x{h}"] = measure_size(w, h, models, spec["repeat"])

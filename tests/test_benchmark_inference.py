@@ -5,7 +5,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.inference import SPP, _checkpoint
+from benchmarks.inference import SPP, _checkpoint, _macs, denoiser_macs
 from pipeline.denoise import DEFAULT_MODEL, WEIGHTS_DIR, Denoiser, ensemble_members, shipped_members
 from pipeline.ensemble import SEPARATOR
 
@@ -24,3 +24,11 @@ def test_a_preset_ensemble_gets_random_weights_and_keeps_a_range(tmp_path: Path)
     den = Denoiser(spec)
     out = den.denoise_array(np.ones((8, 8, 3), np.float32), spp=SPP)
     assert out.models == ("fast", "u-fast")  # the benchmark's spp runs the low-spp member
+
+
+def test_an_ensembles_macs_count_only_the_members_that_run_at_the_benchmarks_spp(tmp_path: Path) -> None:
+    both = Denoiser(str(_checkpoint("fast+u-fast", tmp_path)))
+    fast_only = Denoiser(str(_checkpoint("fast+u-fast:17-", tmp_path)))
+    fast, u_fast = (_macs(m.config) for m in both.members)
+    assert denoiser_macs(both) == fast + u_fast
+    assert denoiser_macs(fast_only) == fast  # u-fast runs from 17 spp only, the benchmark calls at SPP
