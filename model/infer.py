@@ -28,7 +28,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from imaging.blocks import block_rows, row_blocks
+from imaging.blocks import block_rows, parallel_map, pass_workers, row_blocks
 from imaging.tiling import Core, Tile, run_windows
 from model.architectures import alignment, inference_bytes_per_pixel, receptive_radius
 from model.config import ModelConfig
@@ -64,25 +64,29 @@ EXPOSURE_TARGET = 0.08
 _LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
 
 
-def log_average_luminance(color: np.ndarray, rows: int = 256) -> float:
+def log_average_luminance(color: np.ndarray, rows: int = 256, workers: int = 1) -> float:
     """exp(mean(log L)) over the pixels of HxWx3 radiance whose luminance L is finite and > 0
-    (0.0 if there are none); computed in row blocks, without a whole-image copy."""
-    total, count = 0.0, 0
-    for y in range(0, color.shape[0], rows):
+    (0.0 if there are none); computed in blocks of ``rows`` rows, ``workers`` blocks at a time
+    (:func:`imaging.blocks.parallel_map`; the same result), without a whole-image copy."""
+    def block(y: int) -> tuple[float, int]:
         with np.errstate(invalid="ignore", over="ignore"):  # inf - inf: NaN, dropped below
             lum = np.asarray(color[y:y + rows], dtype=np.float64) @ _LUMINANCE
         lum = lum[np.isfinite(lum) & (lum > 0)]
-        total, count = total + float(np.log(lum).sum()), count + lum.size
+        return float(np.log(lum).sum()), lum.size
+
+    total, count = 0.0, 0
+    for block_total, block_count in parallel_map(block, range(0, color.shape[0], rows), workers):
+        total, count = total + block_total, count + block_count
     return math.exp(total / count) if count else 0.0
 
 
-def exposure_scale(color: np.ndarray, rows: int = 256) -> float:
+def exposure_scale(color: np.ndarray, rows: int = 256, workers: int = 1) -> float:
     """Power of two to multiply HxWx3 radiance by before the network, and divide its output by:
     1.0 when the log-average luminance lies inside ``EXPOSURE_BAND`` (or the image is black).
     A power of two scales without rounding; a very bright image (mean 1e3, emitters beyond
     65504) is then not clamped, and a very dark one (mean 1e-4) is seen as the network knows it.
-    ``rows``: rows per block of :func:`log_average_luminance`."""
-    key = log_average_luminance(color, rows)
+    ``rows``, ``workers``: the blocks of :func:`log_average_luminance`."""
+    key = log_average_luminance(color, rows, workers)
     if key == 0.0 or EXPOSURE_BAND[0] <= key <= EXPOSURE_BAND[1]:
         return 1.0
     return 2.0 ** min(64, max(-64, round(math.log2(EXPOSURE_TARGET / key))))
@@ -232,7 +236,10 @@ def denoise_image(model: nn.Module, color: np.ndarray, aux: Aux = None,
         raise ValueError("test-time flips need a model without albedo/normal inputs (flips 1 here)")
     transfer = get_transfer(config.transfer)
     height, width = color.shape[:2]
-    scale = exposure_scale(color, block_rows(width, PASS_BYTES_PER_PIXEL, max_bytes, 256))
+    workers = pass_workers(height * width, torch.get_num_threads())  # threads of the numpy passes
+    blocks = workers * -(-height // (256 * workers))  # blocks of <= 256 rows, a multiple of workers
+    scale = exposure_scale(color, block_rows(width, PASS_BYTES_PER_PIXEL, max_bytes / workers,
+                                             -(-height // blocks)), workers)
     align = alignment(config)
     radius = min(BOUND_RADIUS, receptive_radius(config))  # within the margin: tiles see the whole window
     region = None
@@ -248,7 +255,9 @@ def denoise_image(model: nn.Module, color: np.ndarray, aux: Aux = None,
     def net(t: Tile) -> np.ndarray:
         h, w = t.wy1 - t.wy0, t.wx1 - t.wx0
         rgb = _scaled(color[t.wy0:t.wy1, t.wx0:t.wx1], scale)
-        x = torch.empty(1, config.image_channels, h, w)  # filled part by part: no concatenation
+        # filled part by part (no concatenation), each pixel's channels side by side as the folded
+        # multi-scale net reads them (model.inference_unet.unshuffled_input: 1.5x faster at 720p)
+        x = torch.empty(1, config.image_channels, h, w, memory_format=torch.channels_last)
         encoded = transfer.forward(torch.from_numpy(rgb))
         x[0, :3] = encoded.permute(2, 0, 1)
         if aux is not None:

@@ -24,6 +24,9 @@ What changes against the training module (eval mode), and why it is exact up to 
   on 2 cores: u-fast's network alone at 1080p in bfloat16, 1.22 -> 0.90 s (docs/speed.md).
 * **Optionally bfloat16** (``dtype``, :mod:`model.precision`): weights and activations; the input
   is built and the residual added in float32.
+* **The input written into one NHWC buffer** (:func:`padded_input`): RGB, its gradients and the
+  other channels side by side per pixel, the layout the first conv reads, instead of a
+  concatenation of NCHW planes and a reorder.
 
 Input and output are those of the original model: Nx3xHxW (Nx9xHxW with aux) transfer-space image
 -> Nx3xHxW transfer-space RGB. ``tests/test_infer_speedups.py`` bounds the difference.
@@ -35,7 +38,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from model.config import ModelConfig
-from model.network import FlatDenseNet, network_input
+from model.network import FlatDenseNet
 
 
 def bn_affine(bn: nn.BatchNorm2d) -> tuple[torch.Tensor, torch.Tensor]:
@@ -58,6 +61,31 @@ def fold_conv_bn(conv: nn.Conv2d, bn: nn.BatchNorm2d) -> tuple[torch.Tensor, tor
     weight = conv.weight.double() * scale.view(-1, 1, 1, 1)
     bias = shift if conv.bias is None else scale * conv.bias.double() + shift
     return weight.float(), bias.float()
+
+
+def padded_input(image: torch.Tensor, align: int = 1) -> torch.Tensor:
+    """The network input of an NxCxHxW ``image`` (:func:`model.network.network_input`: RGB, its x
+    and y forward differences, the other channels) as an NxHpxWpx(C+6) float32 NHWC tensor, padded
+    at the bottom and right to sides that are multiples of ``align`` by replicating the last row
+    and column (:func:`model.unet.pad_to_alignment`); written part by part into one buffer, which
+    reads an image with channels_last strides fastest."""
+    n, c, h, w = image.shape
+    hp, wp = h + -h % align, w + -w % align
+    src = image.permute(0, 2, 3, 1)
+    rgb = src[..., :3]
+    p = torch.empty(n, hp, wp, c + 6)
+    p[:, :h, :w, :3] = rgb
+    torch.sub(rgb[:, :, 1:], rgb[:, :, :-1], out=p[:, :h, :w - 1, 3:6])
+    p[:, :h, w - 1, 3:6] = 0.0
+    torch.sub(rgb[:, 1:], rgb[:, :-1], out=p[:, :h - 1, :w, 6:9])
+    p[:, h - 1, :w, 6:9] = 0.0
+    if c > 3:
+        p[:, :h, :w, 9:] = src[..., 3:]
+    if wp > w:
+        p[:, :h, w:] = p[:, :h, w - 1:w]
+    if hp > h:
+        p[:, h:] = p[:, h - 1:h]
+    return p
 
 
 class _Conv(nn.Module):
@@ -189,7 +217,7 @@ class InferenceNet(nn.Module):
         return x
 
     def forward(self, image: torch.Tensor) -> torch.Tensor:
-        x = network_input(image).contiguous(memory_format=torch.channels_last).to(self.dtype)
+        x = padded_input(image).to(self.dtype).permute(0, 3, 1, 2)
         x = self.head(x)
         n, _, h, w = x.shape
         scratch = torch.empty(n * self.clamp_width * h * w, dtype=self.dtype)  # the clamps' (scratch_view)

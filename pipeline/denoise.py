@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from imaging.allocator import fix_mmap_threshold, use_huge_pages
-from imaging.blocks import block_rows
+from imaging.blocks import block_rows, parallel_map, pass_workers
 from imaging.errors import DenoiserError
 from imaging.hashing import file_sha256
 from imaging.tiling import core_for_budget, cores_for_budget
@@ -187,17 +187,19 @@ class DenoiseResult:
 COUNT_BYTES_PER_PIXEL = 4  # count_invalid: one boolean mask of a row block's 3 channels at a time
 
 
-def count_invalid(rgb: np.ndarray, rows: int | None = None) -> tuple[int, int]:
+def count_invalid(rgb: np.ndarray, rows: int | None = None, workers: int = 1) -> tuple[int, int]:
     """Numbers of non-finite and of negative values in an HxWxC image (both are replaced by 0),
-    counted ``rows`` rows at a time (None: all at once); no copy of the image is made."""
-    nonfinite = negative = 0
-    step = rows or max(1, rgb.shape[0])
-    for y in range(0, rgb.shape[0], step):
-        block = rgb[y:y + step]
-        nonfinite += block.size - int(np.count_nonzero(np.isfinite(block)))
+    counted ``rows`` rows at a time (None: all at once), ``workers`` blocks at a time on threads
+    (:func:`imaging.blocks.parallel_map`); no copy of the image is made."""
+    def block(y: int) -> tuple[int, int]:
+        part = rgb[y:y + step]
         with np.errstate(invalid="ignore"):
-            negative += int(np.count_nonzero(block < 0)) - int(np.count_nonzero(np.isneginf(block)))
-    return nonfinite, negative
+            negative = int(np.count_nonzero(part < 0)) - int(np.count_nonzero(np.isneginf(part)))
+        return part.size - int(np.count_nonzero(np.isfinite(part))), negative
+
+    step = rows or max(1, rgb.shape[0])
+    counts = parallel_map(block, range(0, rgb.shape[0], step), workers)
+    return sum(c[0] for c in counts), sum(c[1] for c in counts)
 
 
 class Denoiser:
@@ -356,6 +358,8 @@ class Denoiser:
         ``spp``: the render's samples per pixel, where known: an ensemble runs only the members
         trained on such renders (:meth:`active`; unknown: the members trained on every spp). None of the inputs is changed or copied whole.
         """
+        import torch
+
         from model.infer import denoise_image
 
         rgb = np.asarray(rgb)
@@ -363,7 +367,9 @@ class Denoiser:
             raise DenoiserError(f"expected an HxWx3 image, got shape {rgb.shape}")
         start = time.perf_counter()
         height, width = rgb.shape[:2]
-        nonfinite, negative = count_invalid(rgb, block_rows(width, COUNT_BYTES_PER_PIXEL, self.max_bytes, height))
+        workers = pass_workers(height * width, torch.get_num_threads())  # threads of the numpy passes
+        nonfinite, negative = count_invalid(rgb, block_rows(width, COUNT_BYTES_PER_PIXEL, self.max_bytes / workers,
+                                                            -(-height // workers)), workers)
         aux = None
         if self.needs_aovs:
             if albedo is None or normals is None:
@@ -392,7 +398,7 @@ class Denoiser:
         weight = weights = None
         if variance is not None:
             weights = np.empty((height, width, 1), np.float32)
-            guard_in_place(rgb, out, variance, weights, self.max_bytes, strength=strength)
+            guard_in_place(rgb, out, variance, weights, self.max_bytes, strength=strength, workers=workers)
             weight = float(weights.mean())
         return DenoiseResult(out, nonfinite, negative, time.perf_counter() - start, count[0], weight,
                              None if weights is None else weights[:, :, 0], network,

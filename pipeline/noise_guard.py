@@ -27,8 +27,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from imaging.blocks import row_blocks
-from imaging.tiling import Tile, core_for_budget, run_windows
+from imaging.blocks import parallel_map, row_blocks
+from imaging.tiling import Tile, core_for_budget, plan_tiles
 
 DEFAULT_RADIUS = 2      # window 5x5 (benchmarks/noise_guard.py)
 DEFAULT_STRENGTH = 1.0  # 1: the Wiener weight; larger trusts the denoiser more
@@ -160,7 +160,8 @@ def clean_render(noisy: np.ndarray) -> np.ndarray:
 
 
 def guard_in_place(noisy: np.ndarray, denoised: np.ndarray, variance: np.ndarray, weights: np.ndarray,
-                   max_bytes: float, radius: int = DEFAULT_RADIUS, strength: float = DEFAULT_STRENGTH) -> None:
+                   max_bytes: float, radius: int = DEFAULT_RADIUS, strength: float = DEFAULT_STRENGTH,
+                   workers: int = 1) -> None:
     """:func:`guard` of a whole image within ``max_bytes`` of scratch memory, bit for bit.
 
     ``noisy``: HxWx3 render (any float dtype; :func:`clean_render` is applied), ``variance`` its
@@ -169,17 +170,26 @@ def guard_in_place(noisy: np.ndarray, denoised: np.ndarray, variance: np.ndarray
     pixels of context (:func:`box_mean_2d` makes them exact), then blended in row blocks: the
     weights need the unblended output around each tile, so it is changed only once they are
     all known. A tile or a block is at least 16 px or one row wide, whatever ``max_bytes`` says.
+    ``workers``: tiles and blocks processed at a time on threads (:func:`imaging.blocks.parallel_map`),
+    each within ``max_bytes / workers``; there are at least that many of each where the image
+    has the rows. The result does not depend on it.
     """
     height, width = denoised.shape[:2]
     if weights.shape != (height, width, 1) or weights.dtype != np.float32:
         raise ValueError(f"weights must be HxWx1 float32 like the image, got {weights.shape} {weights.dtype}")
+    workers = max(1, workers)
+    budget = max_bytes / workers
+    side = core_for_budget(GUARD_BYTES_PER_PIXEL, budget, radius)
+    core = (min(side, -(-height // workers)), side)
 
-    def weight(t: Tile) -> np.ndarray:
+    def weight(t: Tile) -> None:
         window = slice(t.wy0, t.wy1), slice(t.wx0, t.wx1)
-        return blend_weight(clean_render(noisy[window]), denoised[window],
-                            np.asarray(variance[window], np.float32), radius, strength)
+        w = blend_weight(clean_render(noisy[window]), denoised[window],
+                         np.asarray(variance[window], np.float32), radius, strength)
+        weights[t.y0:t.y1, t.x0:t.x1] = w[t.y0 - t.wy0:t.y1 - t.wy0, t.x0 - t.wx0:t.x1 - t.wx0]
 
-    run_windows(weight, height, width, core_for_budget(GUARD_BYTES_PER_PIXEL, max_bytes, radius), radius,
-                out=weights)
-    for rows in row_blocks(height, width, BLEND_BYTES_PER_PIXEL, max_bytes):
+    def blend_rows(rows: slice) -> None:
         denoised[rows] = blend(clean_render(noisy[rows]), denoised[rows], weights[rows])
+
+    parallel_map(weight, plan_tiles(height, width, core, radius), workers)
+    parallel_map(blend_rows, row_blocks(height, width, BLEND_BYTES_PER_PIXEL, budget, workers), workers)

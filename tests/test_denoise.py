@@ -94,6 +94,7 @@ def test_count_invalid_in_row_blocks() -> None:
     img[0, 0, 0], img[4, 6, 2], img[8, 0, 1], img[5, 5, 0] = np.nan, -np.inf, -3.0, np.inf
     assert count_invalid(img) == (3, 1)
     assert all(count_invalid(img, rows) == (3, 1) for rows in (1, 2, 4, 9, 100))
+    assert all(count_invalid(img, rows, workers) == (3, 1) for rows in (1, 4, 100) for workers in (2, 3))
 
 
 def test_call_returns_same_kind(ckpt: Path, mi: Any) -> None:

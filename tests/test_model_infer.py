@@ -13,7 +13,8 @@ import torch
 from model.checkpoint import save_checkpoint
 from model.config import PRESETS, ModelConfig
 from model.flips import FLIPS, check_flips
-from model.infer import BOUND_RADIUS, denoise_image, flip_average, neighbourhood_max, noisy_region
+from model.infer import (BOUND_RADIUS, denoise_image, flip_average, log_average_luminance, neighbourhood_max,
+                         noisy_region)
 from model.architectures import alignment, build_model
 from model.transfer import HDR_MAX, get_transfer
 
@@ -223,3 +224,12 @@ def test_a_tile_planned_under_a_budget_stays_under_it(tmp_path: Path, preset: st
                           text=True, check=True, cwd=Path(__file__).resolve().parents[1])
     m = json.loads(proc.stdout.strip().splitlines()[-1])
     assert 0.5 * budget <= m["scratch_mb"] <= 1.1 * budget, m
+
+
+@pytest.mark.parametrize("rows, workers", [(1, 2), (7, 3), (256, 2), (5, 1)])
+def test_log_average_luminance_on_threads_is_the_serial_one(rows: int, workers: int) -> None:
+    """Blocks summed in their order whatever thread computed them: the same float."""
+    img = np.random.default_rng(4).gamma(2.0, 0.3, (41, 23, 3)).astype(np.float32)
+    img[3, 4] = np.nan
+    img[9, 1, 2] = np.inf
+    assert log_average_luminance(img, rows, workers) == log_average_luminance(img, rows, 1)

@@ -70,14 +70,15 @@ def _guard_case(h: int, w: int, seed: int = 3) -> tuple[np.ndarray, np.ndarray, 
 
 @pytest.mark.parametrize("shape", [(61, 47), (1, 40), (40, 1), (130, 90)])
 @pytest.mark.parametrize("max_bytes", [1.0, 50e3, 1e9])
-def test_guard_in_place_is_the_whole_image_guard(shape: tuple[int, int], max_bytes: float) -> None:
-    """Tiles for the weights, row blocks for the blend, any budget: the whole-image guard's
-    image, weights and mean weight to the last bit."""
+@pytest.mark.parametrize("workers", [1, 2, 3])
+def test_guard_in_place_is_the_whole_image_guard(shape: tuple[int, int], max_bytes: float, workers: int) -> None:
+    """Tiles for the weights, row blocks for the blend, any budget, on any number of threads:
+    the whole-image guard's image, weights and mean weight to the last bit."""
     noisy, denoised, variance = _guard_case(*shape)
     expected, mean = guard(clean_render(noisy), denoised, variance, strength=2.0)
     weights = np.full((*shape, 1), np.nan, np.float32)
     out = denoised.copy()
-    guard_in_place(noisy, out, variance, weights, max_bytes, strength=2.0)
+    guard_in_place(noisy, out, variance, weights, max_bytes, strength=2.0, workers=workers)
     assert np.array_equal(out, expected)
     assert np.array_equal(weights, blend_weight(clean_render(noisy), denoised, variance, strength=2.0))
     assert float(weights.mean()) == mean
@@ -113,11 +114,13 @@ def test_guard_scratch_per_pixel_stays_under_its_stated_bound(shape: tuple[int, 
     assert _traced_peak(lambda: blend(clean_render(noisy), denoised, w)) <= BLEND_BYTES_PER_PIXEL * pixels + 16384
 
 
-def test_guard_in_place_stays_within_its_budget() -> None:
-    """A 600x500 image within 2 MB (the same guard on the whole image: ~12 MB)."""
+@pytest.mark.parametrize("workers", [1, 2])
+def test_guard_in_place_stays_within_its_budget(workers: int) -> None:
+    """A 600x500 image within 2 MB (the same guard on the whole image: ~12 MB), also with two
+    threads at once (tracemalloc counts every thread's allocations)."""
     noisy, denoised, variance = _guard_case(600, 500)
     weights = np.empty((600, 500, 1), np.float32)
-    peak = _traced_peak(lambda: guard_in_place(noisy, denoised, variance, weights, 2e6))
+    peak = _traced_peak(lambda: guard_in_place(noisy, denoised, variance, weights, 2e6, workers=workers))
     assert peak <= 2e6 * 1.1
     whole = _traced_peak(lambda: guard(clean_render(noisy), denoised, variance))
     assert whole > 5 * peak
