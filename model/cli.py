@@ -37,7 +37,7 @@ _FLAGS = {  # argparse dest -> TrainConfig field
     "lr_warmup": "lr_warmup", "lr_cosine_steps": "lr_cosine_steps", "lr_final": "lr_final",
     "noise_dropout": "noise_dropout", "gradient_weight": "gradient_weight", "max_scenes": "max_scenes",
     "max_spp": "max_spp", "min_spp": "min_spp",
-    "log_loss_eps": "log_loss_eps",
+    "log_loss_eps": "log_loss_eps", "ms_ssim_weight": "ms_ssim_weight",
 }
 _MODEL_FLAGS = ("arch", "transfer", "output", "aux_inputs", "noise_input", "noise_radius", "levels", "layers",
                 "growth", "init_features", "head")
@@ -92,6 +92,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--log-loss-eps", type=float,
                    help="minimise the mean over patches of log(patch loss + EPS) instead of the mean loss, "
                         "so clean high-spp patches count per relative gain (default 0 = off, the paper's)")
+    p.add_argument("--ms-ssim-weight", type=float,
+                   help="share of 1 - MS-SSIM in the loss (0.84 with --gradient-weight 0: the L1 + MS-SSIM mix "
+                        "of Zhao et al. and OIDN; default 0 = off, the paper's loss)")
     p.add_argument("--max-scenes", type=int, help="use only the datasets' scenes with index below this")
     p.add_argument("--max-spp", type=int,
                    help="train and validate on the renders of at most this many spp only (default: all)")

@@ -69,7 +69,8 @@ def train_step(model: torch.nn.Module, optimizer: torch.optim.Optimizer, noisy: 
                grad_clip: float | None = None, bf16: bool = False,
                micro_batch: int | None = None,
                reduce_loss: Callable[[float], float] | None = None,
-               gradient_weight: float = GRADIENT_WEIGHT, log_eps: float = 0.0) -> StepResult:
+               gradient_weight: float = GRADIENT_WEIGHT, log_eps: float = 0.0,
+               ms_ssim_weight: float = 0.0) -> StepResult:
     """Forward, loss, backward and (unless NaN/Inf) an optimiser update on one batch.
 
     ``noisy``: NxCxHxW transfer-space input, ``ref``: Nx3xHxW transfer-space target.
@@ -78,7 +79,7 @@ def train_step(model: torch.nn.Module, optimizer: torch.optim.Optimizer, noisy: 
     (the update still averages over all N patches, but BatchNorm normalises each chunk with its
     own statistics and updates its running statistics once per chunk).
     ``gradient_weight``: share of the gradient-L1 term in the loss, ``log_eps`` > 0: the mean of
-    the patches' log losses (both :func:`model.loss.denoising_loss`).
+    the patches' log losses, ``ms_ssim_weight``: share of 1 - MS-SSIM (all :func:`model.loss.denoising_loss`).
     ``reduce_loss`` maps each chunk's loss to the value all data-parallel processes agree on (the
     mean over DDP ranks, NaN if any rank's is NaN), so that every rank skips the same steps;
     None keeps this process's own value.
@@ -92,7 +93,8 @@ def train_step(model: torch.nn.Module, optimizer: torch.optim.Optimizer, noisy: 
     for start in range(0, len(noisy), size):
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
             out = model(noisy[start:start + size])
-        loss = denoising_loss(out, ref[start:start + size], gradient_weight, log_eps) * (len(out) / len(noisy))
+        loss = denoising_loss(out, ref[start:start + size], gradient_weight, log_eps,
+                              ms_ssim_weight) * (len(out) / len(noisy))
         chunk_loss = float(loss.detach())
         if reduce_loss is not None:
             chunk_loss = reduce_loss(chunk_loss)

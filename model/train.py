@@ -332,7 +332,7 @@ def _one_step(run: _Run, net: torch.nn.Module, source: BatchSource, bar: Progres
     result = train_step(net, run.optimizer, noisy, ref, step=run.step, lr=lr, guard=run.guard,
                         grad_clip=config.grad_clip, bf16=config.bf16, micro_batch=config.micro_batch,
                         reduce_loss=run.reduce_loss, gradient_weight=config.gradient_weight,
-                        log_eps=config.log_loss_eps)
+                        log_eps=config.log_loss_eps, ms_ssim_weight=config.ms_ssim_weight)
     run.step += 1
     if result.skipped:
         run.meter.skipped += 1

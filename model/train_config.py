@@ -25,6 +25,7 @@ from typing import Any
 
 from imaging.errors import ConfigError
 from model.config import ModelConfig, PRESETS
+from model.loss import SSIM_WINDOW
 from model.patches import PatchConfig
 from model.step import learning_rate
 
@@ -52,6 +53,8 @@ class TrainConfig:
     ``gradient_weight``: share of the gradient L1 in the loss (the paper's 0.1; 0: plain L1).
     ``log_loss_eps`` > 0: minimise the mean over patches of log(patch loss + eps) instead of the
     mean loss (:mod:`model.loss`: every spp level counts per relative gain, as mean PSNR does).
+    ``ms_ssim_weight`` > 0: share of 1 - MS-SSIM in the loss (:mod:`model.loss`; Zhao et al.'s and
+    OIDN's mix: 0.84 with ``gradient_weight`` 0); needs patches of at least 11 px.
     ``max_scenes`` > 0: train and validate on the scenes with index below it only (the dataset
     may hold more, e.g. while it is still being generated), so a run's data is fixed; it applies
     to every dataset of the run. ``extra_data``: further dataset folders trained and validated
@@ -81,6 +84,7 @@ class TrainConfig:
     noise_dropout: float = 0.25
     gradient_weight: float = 0.1
     log_loss_eps: float = 0.0
+    ms_ssim_weight: float = 0.0
     max_scenes: int = 0
     max_spp: int = 0
     min_spp: int = 0
@@ -133,6 +137,11 @@ class TrainConfig:
             raise ConfigError(f"gradient_weight must be in [0, 1], got {self.gradient_weight!r}")
         if not (isinstance(self.log_loss_eps, (int, float)) and 0 <= self.log_loss_eps <= 1):
             raise ConfigError(f"log_loss_eps must be in [0, 1], got {self.log_loss_eps!r}")
+        if not (isinstance(self.ms_ssim_weight, (int, float)) and 0 <= self.ms_ssim_weight <= 1):
+            raise ConfigError(f"ms_ssim_weight must be in [0, 1], got {self.ms_ssim_weight!r}")
+        if self.ms_ssim_weight > 0 and self.patch.size < SSIM_WINDOW:
+            raise ConfigError(f"ms_ssim_weight needs patches of at least {SSIM_WINDOW} px (the SSIM window), "
+                              f"got {self.patch.size}")
         if not (isinstance(self.noise_dropout, (int, float)) and 0 <= self.noise_dropout <= 1):
             raise ConfigError(f"noise_dropout must be in [0, 1], got {self.noise_dropout!r}")
         if self.micro_batch is not None and not (

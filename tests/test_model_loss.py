@@ -1,10 +1,12 @@
-"""The loss: 0.9 * L1 + 0.1 * mean of the x/y gradient L1 terms."""
+"""The loss: 0.9 * L1 + 0.1 * mean of the x/y gradient L1 terms; the MS-SSIM mix."""
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 
-from model.loss import denoising_loss, gradient_l1
+from model.loss import (SSIM_C1, SSIM_C2, SSIM_SIGMA, SSIM_WINDOW, denoising_loss, gradient_l1, ms_ssim,
+                        ms_ssim_scales)
 
 
 def test_hand_computed_4x4() -> None:
@@ -62,3 +64,62 @@ def test_log_loss_weights_patches_by_their_inverse_loss() -> None:
     g = out.grad.abs().mean((1, 2, 3))
     expected_ratio = (0.05 + eps) / (0.5 + eps)
     assert float(g[0] / g[1]) == pytest.approx(expected_ratio, rel=1e-4)
+
+
+def _brute_ssim(x: np.ndarray, y: np.ndarray) -> float:
+    """Single-scale SSIM of two CxPxP arrays, float64: every valid 11x11 window's Gaussian-weighted
+    statistics computed directly, averaged over windows and channels."""
+    r = np.arange(SSIM_WINDOW) - SSIM_WINDOW // 2
+    g = np.exp(-r * r / (2 * SSIM_SIGMA ** 2))
+    w = np.outer(g, g) / np.outer(g, g).sum()
+    values = []
+    for c in range(x.shape[0]):
+        for i in range(x.shape[1] - SSIM_WINDOW + 1):
+            for j in range(x.shape[2] - SSIM_WINDOW + 1):
+                a, b = x[c, i:i + SSIM_WINDOW, j:j + SSIM_WINDOW], y[c, i:i + SSIM_WINDOW, j:j + SSIM_WINDOW]
+                ma, mb = (w * a).sum(), (w * b).sum()
+                va, vb = (w * a * a).sum() - ma * ma, (w * b * b).sum() - mb * mb
+                cov = (w * a * b).sum() - ma * mb
+                values.append((2 * ma * mb + SSIM_C1) * (2 * cov + SSIM_C2)
+                              / ((ma * ma + mb * mb + SSIM_C1) * (va + vb + SSIM_C2)))
+    return float(np.mean(values))
+
+
+def test_ms_ssim_scales_keep_the_window_inside_the_patch() -> None:
+    assert [ms_ssim_scales(s) for s in (11, 16, 21, 22, 28, 64, 128, 256, 1024)] == [1, 1, 1, 2, 2, 3, 4, 5, 5]
+    for size in (11, 28, 64, 128, 176):
+        assert size // 2 ** (ms_ssim_scales(size) - 1) >= SSIM_WINDOW
+
+
+def test_single_scale_ms_ssim_is_brute_force_ssim() -> None:
+    rng = np.random.default_rng(5)
+    x = rng.random((2, 3, 16, 16))
+    y = np.clip(x + rng.normal(0, 0.1, x.shape), 0, 1)
+    got = ms_ssim(torch.from_numpy(x).float(), torch.from_numpy(y).float())
+    want = [_brute_ssim(x[n], y[n]) for n in range(2)]
+    assert ms_ssim_scales(16) == 1
+    np.testing.assert_allclose(got.numpy(), want, rtol=0, atol=2e-5)
+
+
+def test_ms_ssim_is_one_for_identical_patches_and_falls_with_noise() -> None:
+    rng = np.random.default_rng(6)
+    ref = torch.from_numpy(rng.random((4, 3, 64, 64))).float() * 0.5
+    torch.testing.assert_close(ms_ssim(ref, ref), torch.ones(4), rtol=0, atol=1e-5)
+    values = [float(ms_ssim(ref + torch.randn_like(ref) * s, ref).mean()) for s in (0.01, 0.05, 0.2)]
+    assert 1 > values[0] > values[1] > values[2]
+
+
+def test_ms_ssim_weight_mixes_per_patch_and_keeps_gradients_finite() -> None:
+    torch.manual_seed(7)
+    ref = torch.rand(3, 3, 28, 28)
+    ref[0] = 0.25  # a flat patch: zero variances on both sides
+    out = (ref + 0.05 * torch.randn_like(ref)).requires_grad_()
+    base = denoising_loss(out, ref)
+    assert torch.equal(denoising_loss(out, ref, ms_ssim_weight=0.0), base)
+    mixed = denoising_loss(out, ref, ms_ssim_weight=0.84)
+    expected = 0.16 * denoising_loss(out, ref) + 0.84 * (1 - ms_ssim(out, ref)).mean()
+    torch.testing.assert_close(mixed, expected)
+    only = denoising_loss(out, ref, gradient_weight=0.0, ms_ssim_weight=1.0)
+    torch.testing.assert_close(only, (1 - ms_ssim(out, ref)).mean())
+    mixed.backward()
+    assert out.grad is not None and torch.isfinite(out.grad).all() and out.grad.abs().sum() > 0

@@ -75,6 +75,20 @@ def test_log_loss_trains_and_is_recorded(dataset: Path, tmp_path: Path) -> None:
     assert read_checkpoint(run / "last.ckpt").header["train_config"]["log_loss_eps"] == 0.001
 
 
+def test_ms_ssim_mix_trains_and_is_recorded(dataset: Path, tmp_path: Path) -> None:
+    # Zhao's / OIDN's mix (0.16 L1 + 0.84 (1 - MS-SSIM)) learns and is recorded in the checkpoint.
+    run = tmp_path / "run"
+    cfg = _config(tmp_path, model=TINY_MODEL, batch=4, val_every=20, progress=False, log_every=10)
+    assert main(["--data", str(dataset), "--out", str(run), "--config", cfg, "--steps", "40",
+                 "--lr", "0.003", "--ms-ssim-weight", "0.84", "--gradient-weight", "0"]) == 0
+    losses = [r["loss"] for r in _log(run) if r["type"] == "train"]
+    assert all(0 < loss < 1 for loss in losses) and losses[-1] < 0.5 * losses[0]
+    log = _log(run)
+    val = [r for r in log if r["type"] == "val"][-1]
+    assert val["per_spp"]["4"]["psnr"]["ours"] > val["per_spp"]["4"]["psnr"]["noisy"]
+    assert read_checkpoint(run / "last.ckpt").header["train_config"]["ms_ssim_weight"] == 0.84
+
+
 def test_resume_continues_exactly(dataset: Path, tmp_path: Path) -> None:
     cfg = _config(tmp_path, model=TINY_MODEL, batch=4, lr_decay_every=3, log_every=2, ckpt_every=2,
                   val_every=0, progress=False)
@@ -133,6 +147,9 @@ def test_nan_losses_stop_training_without_poisoning(dataset: Path, tmp_path: Pat
     (["--data", "{data}", "--out", "{tmp}/no/such/r"], "output parent folder does not exist"),
     (["--data", "{data}", "--out", "{tmp}/r", "--steps", "0"], "steps must be a positive integer"),
     (["--data", "{data}", "--out", "{tmp}/r", "--log-loss-eps", "-1"], "log_loss_eps must be in [0, 1]"),
+    (["--data", "{data}", "--out", "{tmp}/r", "--ms-ssim-weight", "2"], "ms_ssim_weight must be in [0, 1]"),
+    (["--data", "{data}", "--out", "{tmp}/r", "--ms-ssim-weight", "0.5", "--patch", "8"],
+     "needs patches of at least 11 px"),
     (["--data", "{data}", "--out", "{tmp}/r", "--config", "{tmp}/nope.json"], "nope.json: cannot read config"),
 ])
 def test_cli_errors_one_line(dataset: Path, tmp_path: Path, capsys: pytest.CaptureFixture,
