@@ -74,6 +74,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--aux", dest="aux_inputs", action="store_const", const=True, help="also feed albedo+normal")
     p.add_argument("--batch", type=int, help="patches per step (default 64)")
     p.add_argument("--patch", type=int, help="patch side in pixels (default 28)")
+    p.add_argument("--detail-crops", type=float, metavar="D",
+                   help="choose crops by the reference's variation: share D of the probability goes by each "
+                        "crop's standard deviation, among 4x the batch of candidates (default 0: uniform)")
     p.add_argument("--lr", type=float, help="Adam base learning rate (default 0.01)")
     p.add_argument("--grad-clip", type=float, help="clip the gradient L2 norm to this (default off)")
     p.add_argument("--init-from", metavar="CKPT",
@@ -152,7 +155,8 @@ def config_from_args(args: argparse.Namespace) -> tuple[TrainConfig, bool]:
         flags["cpu_budget_s"] = 60.0 * args.cpu_minutes
     if args.resume:
         names = {"aux_inputs": "aux", "init_features": "width"}
-        given = [f"--{names.get(k, k).replace('_', '-')}" for k in ("config", "preset", "patch", *_MODEL_FLAGS)
+        given = [f"--{names.get(k, k).replace('_', '-')}"
+                 for k in ("config", "preset", "patch", "detail_crops", *_MODEL_FLAGS)
                  if getattr(args, k) is not None]
         if given:
             raise ConfigError(f"{', '.join(given)} cannot be combined with --resume "
@@ -162,8 +166,9 @@ def config_from_args(args: argparse.Namespace) -> tuple[TrainConfig, bool]:
     data.update(flags, out=args.out)
     data["model"] = _model_config(data.get("model"), args)
     if args.patch is not None:
-        patch = dict(data.get("patch") or {}, size=args.patch)
-        data["patch"] = patch
+        data["patch"] = dict(data.get("patch") or {}, size=args.patch)
+    if args.detail_crops is not None:
+        data["patch"] = dict(data.get("patch") or {}, detail=args.detail_crops)
     if "data" not in data:
         raise ConfigError("--data is required for a new run")
     return TrainConfig.from_dict(data), False

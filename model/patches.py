@@ -6,7 +6,12 @@ pair of NxPxPxC / NxPxPx3 float32 arrays (NHWC; ``torch.from_numpy(a).permute(0,
 an NCHW tensor in channels-last memory order without a copy).
 
 Following Kim & Lee, a crop whose noisy RGB holds fewer than ``min_unique`` distinct values is
-dropped (flat background, clipped sky...). Augmentation applies the same random flip/transpose and
+dropped (flat background, clipped sky...). With ``detail`` d > 0, crops are chosen by how much
+the reference varies in them (in the spirit of the importance-sampled patches of Bako et al. 2017,
+KPCN): among ``DETAIL_CANDIDATES`` times as many accepted candidates as the batch needs, a crop is
+drawn with probability ``(1 - d) / n + d * s / sum(s)``, ``s`` its reference's standard deviation
+(transfer space, over pixels and channels), without replacement; d = 0 is the paper's uniform
+sampling (the same random stream as before the option existed). Augmentation applies the same random flip/transpose and
 the same RGB channel permutation to input and target (albedo is permuted with the RGB; normals are
 only moved spatially, their XYZ values are left as they are).
 """
@@ -19,6 +24,7 @@ import numpy as np
 
 from imaging.errors import ConfigError, DatasetError
 
+DETAIL_CANDIDATES = 4  # candidates per crop of the batch when crops are chosen by detail
 _RGB_PERMUTATIONS = np.array([[0, 1, 2], [0, 2, 1], [1, 0, 2], [1, 2, 0], [2, 0, 1], [2, 1, 0]])
 
 
@@ -26,12 +32,14 @@ _RGB_PERMUTATIONS = np.array([[0, 1, 2], [0, 2, 1], [1, 0, 2], [1, 2, 0], [2, 0,
 class PatchConfig:
     """``size``: crop side in pixels; ``min_unique``: distinct noisy-RGB values a crop needs;
     ``augment``: random flips/transposes/RGB permutations; ``max_rounds``: candidate rounds per
-    batch before the sampler gives up (the data is then almost entirely flat)."""
+    batch before the sampler gives up (the data is then almost entirely flat); ``detail``: share
+    of the crops' probability given by the reference's local variation (module docstring)."""
 
     size: int = 28
     min_unique: int = 100
     augment: bool = True
     max_rounds: int = 50
+    detail: float = 0.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.size, int) or self.size < 1:
@@ -40,6 +48,9 @@ class PatchConfig:
             raise ConfigError(f"patch min_unique must be an integer >= 0, got {self.min_unique!r}")
         if not isinstance(self.max_rounds, int) or self.max_rounds < 1:
             raise ConfigError(f"patch max_rounds must be a positive integer, got {self.max_rounds!r}")
+        if not (isinstance(self.detail, (int, float)) and not isinstance(self.detail, bool)
+                and 0 <= self.detail <= 1):
+            raise ConfigError(f"patch detail must be in [0, 1], got {self.detail!r}")
 
 
 @dataclass(frozen=True)
@@ -97,6 +108,23 @@ def _candidates(pairs: Sequence[TrainingPair], count: int, size: int,
     return np.stack(noisy), np.stack(ref)
 
 
+def detail_probabilities(refs: np.ndarray, detail: float) -> np.ndarray:
+    """Probability of each of N reference crops (NxPxPxC): ``(1 - detail) / N + detail * s / sum(s)``
+    with ``s`` a crop's standard deviation over its pixels and channels (uniform where all are flat)."""
+    spread = refs.reshape(len(refs), -1).astype(np.float64).std(axis=1)
+    total = spread.sum()
+    share = spread / total if total > 0 else np.full(len(refs), 1.0 / len(refs))
+    return (1.0 - detail) / len(refs) + detail * share
+
+
+def detail_choice(refs: np.ndarray, count: int, detail: float, rng: np.random.Generator) -> np.ndarray:
+    """Indices of ``count`` of the reference crops ``refs``, drawn without replacement by
+    :func:`detail_probabilities` (flat crops keep a tiny probability, so that ``count`` can always
+    be drawn)."""
+    p = detail_probabilities(refs, detail) + 1e-12
+    return rng.choice(len(refs), size=count, replace=False, p=p / p.sum())
+
+
 def sample_batch(pairs: Sequence[TrainingPair], batch: int, config: PatchConfig,
                  rng: np.random.Generator,
                  color_groups: Sequence[int] | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -114,8 +142,9 @@ def sample_batch(pairs: Sequence[TrainingPair], batch: int, config: PatchConfig,
                                f"smaller than the {config.size}px patch size")
     kept_noisy: list[np.ndarray] = []
     kept_ref: list[np.ndarray] = []
+    want = batch * DETAIL_CANDIDATES if config.detail > 0 else batch
     for _ in range(config.max_rounds):
-        need = batch - len(kept_noisy)
+        need = want - len(kept_noisy)
         if need <= 0:
             break
         noisy, ref = _candidates(pairs, max(2 * need, 8), config.size, rng)
@@ -125,6 +154,9 @@ def sample_batch(pairs: Sequence[TrainingPair], batch: int, config: PatchConfig,
     if len(kept_noisy) < batch:
         raise DatasetError(f"only {len(kept_noisy)} of {batch} patches have >= {config.min_unique} distinct "
                            f"values after {config.max_rounds} rounds: the training images are almost flat")
+    if config.detail > 0:
+        chosen = detail_choice(np.stack(kept_ref), batch, config.detail, rng)
+        kept_noisy, kept_ref = [kept_noisy[i] for i in chosen], [kept_ref[i] for i in chosen]
     if config.augment:
         pairs_out = [augment(n, r, rng, color_groups) for n, r in zip(kept_noisy, kept_ref)]
         kept_noisy, kept_ref = [p[0] for p in pairs_out], [p[1] for p in pairs_out]

@@ -4,8 +4,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from imaging.errors import DatasetError
-from model.patches import PatchConfig, TrainingPair, augment, sample_batch, unique_counts
+from imaging.errors import ConfigError, DatasetError
+from model.patches import (PatchConfig, TrainingPair, augment, detail_choice, detail_probabilities, sample_batch,
+                           unique_counts)
 
 
 @pytest.fixture
@@ -77,3 +78,48 @@ def test_deterministic_for_same_seed() -> None:
     np.testing.assert_array_equal(a[0], b[0])
     np.testing.assert_array_equal(a[1], b[1])
     np.testing.assert_array_equal(a[1], a[0] * 0.5)
+
+
+def test_detail_probabilities_mix_uniform_and_spread() -> None:
+    refs = np.zeros((4, 8, 8, 3), np.float32)
+    refs[1, ::2] = 1.0  # std 0.5
+    refs[2, :, ::4] = 2.0  # std 2 * sqrt(0.25 * 0.75) = 0.866
+    spread = np.array([0.0, 0.5, np.sqrt(0.75), 0.0])
+    for detail in (0.0, 0.3, 1.0):
+        p = detail_probabilities(refs, detail)
+        np.testing.assert_allclose(p, (1 - detail) / 4 + detail * spread / spread.sum(), rtol=1e-6)
+        assert p.sum() == pytest.approx(1.0)
+    np.testing.assert_allclose(detail_probabilities(np.zeros((3, 4, 4, 3)), 1.0), 1 / 3)  # all flat: uniform
+    chosen = detail_choice(refs, 2, 1.0, np.random.default_rng(0))
+    assert sorted(chosen.tolist()) == [1, 2]  # the flat crops keep only a tiny probability
+    assert len(set(detail_choice(refs, 4, 1.0, np.random.default_rng(1)).tolist())) == 4
+
+
+def test_detail_crops_favour_the_textured_half_and_keep_pairs_aligned() -> None:
+    """Left half a smooth ramp (passes the unique filter, small spread), right half strong texture:
+    detail sampling takes more right-half crops than uniform sampling, input and target aligned."""
+    rng = np.random.default_rng(2)
+    img = np.empty((32, 128, 3), np.float32)
+    img[:, :64] = np.linspace(0.4, 0.5, 32 * 64 * 3, dtype=np.float32).reshape(32, 64, 3)
+    img[:, 64:] = rng.random((32, 64, 3), dtype=np.float32)
+    pair = TrainingPair(img, img * 2.0, scene=0, spp=4)
+
+    def textured_share(detail: float) -> float:
+        noisy, ref = sample_batch([pair], 256, PatchConfig(size=16, augment=False, detail=detail),
+                                  np.random.default_rng(3))
+        np.testing.assert_array_equal(ref, noisy * 2.0)
+        return float((noisy.reshape(256, -1).std(axis=1) > 0.1).mean())
+
+    uniform, detailed = textured_share(0.0), textured_share(1.0)
+    assert 0.3 < uniform < 0.7 and detailed > uniform + 0.2
+
+
+def test_detail_zero_keeps_the_uniform_stream_and_bad_values_are_refused() -> None:
+    img = np.random.default_rng(1).random((40, 40, 3), dtype=np.float32)
+    pairs = [TrainingPair(img, img * 0.5, 0, 4)]
+    a = sample_batch(pairs, 8, PatchConfig(), np.random.default_rng([3, 5]))
+    b = sample_batch(pairs, 8, PatchConfig(detail=0.0), np.random.default_rng([3, 5]))
+    np.testing.assert_array_equal(a[0], b[0])
+    for bad in (-0.1, 1.5, True, "x"):
+        with pytest.raises(ConfigError, match="patch detail must be in"):
+            PatchConfig(detail=bad)

@@ -144,6 +144,8 @@ def test_nan_losses_stop_training_without_poisoning(dataset: Path, tmp_path: Pat
     (["--out", "{tmp}/r"], "--data is required for a new run"),
     (["--out", "{tmp}/r", "--resume"], "last.ckpt: checkpoint not found"),
     (["--out", "{tmp}/r", "--resume", "--preset", "fast"], "--preset cannot be combined with --resume"),
+    (["--out", "{tmp}/r", "--resume", "--detail-crops", "0.5"], "--detail-crops cannot be combined with --resume"),
+    (["--data", "{data}", "--out", "{tmp}/r", "--detail-crops", "2"], "patch detail must be in [0, 1]"),
     (["--data", "{data}", "--out", "{tmp}/no/such/r"], "output parent folder does not exist"),
     (["--data", "{data}", "--out", "{tmp}/r", "--steps", "0"], "steps must be a positive integer"),
     (["--data", "{data}", "--out", "{tmp}/r", "--log-loss-eps", "-1"], "log_loss_eps must be in [0, 1]"),
