@@ -256,7 +256,7 @@ def denoise_image(model: nn.Module, color: np.ndarray, aux: Aux = None,
         h, w = t.wy1 - t.wy0, t.wx1 - t.wx0
         rgb = _scaled(color[t.wy0:t.wy1, t.wx0:t.wx1], scale)
         # filled part by part (no concatenation), each pixel's channels side by side as the folded
-        # multi-scale net reads them (model.inference_unet.unshuffled_input: 1.5x faster at 720p)
+        # nets read them (model.inference_net.padded_input: 1.5x faster from channels_last at 720p)
         x = torch.empty(1, config.image_channels, h, w, memory_format=torch.channels_last)
         encoded = transfer.forward(torch.from_numpy(rgb))
         x[0, :3] = encoded.permute(2, 0, 1)
