@@ -18,6 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from imaging.blocks import parallel_map
+
 
 @dataclass(frozen=True)
 class Tile:
@@ -124,10 +126,12 @@ def run_tiled(
 def run_windows(
     fn: Callable[[Tile], np.ndarray], height: int, width: int, core: Core, margin: int,
     progress: Callable[[int, int], None] | None = None, align: int = 1,
-    out: np.ndarray | None = None, region: tuple[int, int, int, int] | None = None,
+    out: np.ndarray | None = None, region: tuple[int, int, int, int] | None = None, workers: int = 1,
 ) -> np.ndarray:
     """Call ``fn(tile)`` for each tile of an HxW image (it returns the HxWxC' result over the
     tile's window) and stitch the cores into ``out`` (allocated on the first result if None).
+    ``workers`` > 1: that many tiles at a time on threads (:func:`imaging.blocks.parallel_map`;
+    worth it for numpy work), stitched in order; at most ``workers`` results are held at once.
 
     ``region`` (y0, y1, x0, x1): tile only that part of the image (its corners on multiples of
     ``align``, or at the image's end); the windows still take their margins from the whole image,
@@ -138,12 +142,14 @@ def run_windows(
                   *_window(t.y0 + y0, t.y1 + y0, height, margin, align),
                   *_window(t.x0 + x0, t.x1 + x0, width, margin, align))
              for t in plan_tiles(y1 - y0, x1 - x0, core, 0, align)]
-    for n, t in enumerate(tiles):
-        result = fn(t)
-        if out is None:
-            out = np.empty((height, width, result.shape[2]), dtype=result.dtype)
-        out[t.y0:t.y1, t.x0:t.x1] = result[t.y0 - t.wy0:t.y1 - t.wy0, t.x0 - t.wx0:t.x1 - t.wx0]
-        if progress:
-            progress(n + 1, len(tiles))
+    step = max(1, workers)
+    for start in range(0, len(tiles), step):
+        batch = tiles[start:start + step]
+        for n, (t, result) in enumerate(zip(batch, parallel_map(fn, batch, workers)), start):
+            if out is None:
+                out = np.empty((height, width, result.shape[2]), dtype=result.dtype)
+            out[t.y0:t.y1, t.x0:t.x1] = result[t.y0 - t.wy0:t.y1 - t.wy0, t.x0 - t.wx0:t.x1 - t.wx0]
+            if progress:
+                progress(n + 1, len(tiles))
     assert out is not None
     return out

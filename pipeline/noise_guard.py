@@ -28,7 +28,7 @@ from __future__ import annotations
 import numpy as np
 
 from imaging.blocks import parallel_map, row_blocks
-from imaging.tiling import Tile, core_for_budget, plan_tiles
+from imaging.tiling import Tile, core_for_budget, run_windows
 
 DEFAULT_RADIUS = 2      # window 5x5 (benchmarks/noise_guard.py)
 DEFAULT_STRENGTH = 1.0  # 1: the Wiener weight; larger trusts the denoiser more
@@ -182,14 +182,13 @@ def guard_in_place(noisy: np.ndarray, denoised: np.ndarray, variance: np.ndarray
     side = core_for_budget(GUARD_BYTES_PER_PIXEL, budget, radius)
     core = (min(side, -(-height // workers)), side)
 
-    def weight(t: Tile) -> None:
+    def weight(t: Tile) -> np.ndarray:
         window = slice(t.wy0, t.wy1), slice(t.wx0, t.wx1)
-        w = blend_weight(clean_render(noisy[window]), denoised[window],
-                         np.asarray(variance[window], np.float32), radius, strength)
-        weights[t.y0:t.y1, t.x0:t.x1] = w[t.y0 - t.wy0:t.y1 - t.wy0, t.x0 - t.wx0:t.x1 - t.wx0]
+        return blend_weight(clean_render(noisy[window]), denoised[window],
+                            np.asarray(variance[window], np.float32), radius, strength)
 
     def blend_rows(rows: slice) -> None:
         denoised[rows] = blend(clean_render(noisy[rows]), denoised[rows], weights[rows])
 
-    parallel_map(weight, plan_tiles(height, width, core, radius), workers)
+    run_windows(weight, height, width, core, radius, out=weights, workers=workers)
     parallel_map(blend_rows, row_blocks(height, width, BLEND_BYTES_PER_PIXEL, budget, workers), workers)

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from imaging.tiling import core_for_budget, cores_for_budget, plan_tiles, run_tiled
+from imaging.tiling import core_for_budget, cores_for_budget, plan_tiles, run_tiled, run_windows
 
 
 @pytest.mark.parametrize("h,w,core,margin", [(1, 1, 8, 3), (1, 37, 8, 3), (37, 1, 8, 3),
@@ -37,6 +37,20 @@ def test_tiled_equals_untiled_when_margin_covers_receptive_field(rng, shape) -> 
                       progress=lambda n, total: calls.append((n, total)))
     np.testing.assert_allclose(tiled, _box_blur(img, 3), rtol=0, atol=1e-12)
     assert calls[-1][0] == calls[-1][1]
+
+
+@pytest.mark.parametrize("workers", [2, 3])
+def test_run_windows_on_threads_is_the_serial_result_with_ordered_progress(rng, workers: int) -> None:
+    img = rng.random((29, 41, 3))
+
+    def fn(t):
+        return _box_blur(img[t.wy0:t.wy1, t.wx0:t.wx1], 3)
+
+    serial = run_windows(fn, 29, 41, 8, 3)
+    calls: list[tuple[int, int]] = []
+    threaded = run_windows(fn, 29, 41, 8, 3, progress=lambda n, total: calls.append((n, total)), workers=workers)
+    assert np.array_equal(threaded, serial)
+    assert [n for n, _ in calls] == list(range(1, len(calls) + 1)) and calls[-1][0] == calls[-1][1] > workers
 
 
 def test_too_small_margin_differs(rng) -> None:
