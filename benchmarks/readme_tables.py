@@ -174,6 +174,28 @@ def noise_guard(results: Results) -> list[str]:
             *_table(["regime", "spp", "noisy", "network alone", "network + guard", "OIDN"], rows, right=1)]
 
 
+def energy(results: Results) -> list[str]:
+    """Mean PSNR without the energy correction, with each setting tried (the default first) and
+    OIDN, per set and spp; the default's images made worse and worst change; radiance kept."""
+    data = results.json("energy")
+    labels = [f"T{s['clamp']:g} r{s['radius']} k{s['significance']:g}" for s in data["settings"]]
+    rows = []
+    for key in ("validation", "eval"):
+        for spp, row in data.get(key, {}).get("per_spp", {}).items():
+            rows.append([key, spp, str(row["images"]), _f(row["none"]),
+                         f"{_f(row[labels[0]])} ({row['worse ' + labels[0]]} / {row['worst ' + labels[0]]:+.2f})",
+                         *(_f(row[k]) for k in labels[1:]), _f(row["oidn"]),
+                         " / ".join(_f(row["kept " + k], 3) for k in ("none", "default", "oidn"))])
+    note = (f"Model `{data['model']}` through the noise guard as the default path; `none`: no correction; "
+            f"T: clamp, r: window radius in 8-px blocks, k: significance; the default {labels[0]} "
+            "(in brackets: images worse than `none` by > 0.05 dB / the worst change). OIDN colour-only on the "
+            "same images. kept: mean radiance / the reference's without the correction, with the default, "
+            "OIDN. validation: held-out procedural scenes (the tuning set); eval: ../shared/eval-scenes, "
+            f"ceiling >= 40 dB, seed {data['seed']}.")
+    return [caption("python -m benchmarks.energy", "benchmarks/results/energy.json", data, note), "",
+            *_table(["set", "spp", "images", "none", *labels, "OIDN", "kept"], rows, right=1)]
+
+
 # --- speed -----------------------------------------------------------------------------------------
 
 def ensemble(results: Results) -> list[str]:
@@ -464,7 +486,7 @@ def denoise_tile_memory(results: Results) -> list[str]:
 
 
 TABLES: dict[str, Callable[[Results], list[str]]] = {
-    f.__name__: f for f in (scoreboard, scoreboard_scenes, noise_guard, noise_guard_settings, ensemble, inference,
+    f.__name__: f for f in (scoreboard, scoreboard_scenes, noise_guard, noise_guard_settings, energy, ensemble, inference,
                             science, multiscale_presets, roofline, budget, presets, validation, val_scenes, trend, ablations,
                             train_throughput, scaleout, extremes, render_memory, denoise_memory, denoise_tile_memory)}
 

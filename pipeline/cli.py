@@ -23,6 +23,8 @@ PRECISION_HELP = ("float format of the network: bfloat16 halves its time on CPUs
                   "for the multi-scale nets where the CPU has it natively, else float32")
 FLIPS_HELP = ("average the network over 1, 2 or 4 mirrored copies of the image: 2x or 4x the "
               "network's time for about 0.1 or 0.2 dB (docs/speed.md)")
+ENERGY_HELP = ("leave the output's local means as the network made them (default, with the render's "
+               "variance: matched to the render's where they differ by more than its noise; docs/noise-guard.md)")
 SKIP_HELP = ("leave the 64-px cells whose noise (transfer-space standard deviation from the halves) is "
              "below NOISE out of the network; they keep the render, as the noise guard would "
              "(benchmarks/skip.py measures time and change; default: the network everywhere)")
@@ -44,6 +46,7 @@ def add_render_arguments(p: argparse.ArgumentParser, reference_required: bool, g
     p.add_argument("--skip-below", type=positive_float, metavar="NOISE", help=SKIP_HELP)
     p.add_argument("--precision", choices=PRECISIONS, default="auto", help=PRECISION_HELP)
     p.add_argument("--flips", type=int, choices=tuple(FLIPS), default=1, help=FLIPS_HELP)
+    p.add_argument("--no-energy", action="store_true", help=ENERGY_HELP)
 
 
 def render_settings(args: argparse.Namespace) -> RenderSettings:
@@ -51,7 +54,8 @@ def render_settings(args: argparse.Namespace) -> RenderSettings:
     return RenderSettings(scene=args.scene, resolution=tuple(args.res) if args.res else None, seed=args.seed,
                           params=dict(args.param), max_memory_mb=args.max_memory_mb,
                           noise_guard=not args.no_noise_guard, skip_below=args.skip_below,
-                          precision=args.precision, flips=args.flips, reference=args.reference,
+                          precision=args.precision, flips=args.flips, energy=not args.no_energy,
+                          reference=args.reference,
                           reference_spp=args.reference_spp)
 
 
@@ -135,6 +139,7 @@ def denoise_parser() -> OneLineParser:
     p.add_argument("--skip-below", type=positive_float, metavar="NOISE", help=SKIP_HELP)
     p.add_argument("--precision", choices=PRECISIONS, default="auto", help=PRECISION_HELP)
     p.add_argument("--flips", type=int, choices=tuple(FLIPS), default=1, help=FLIPS_HELP)
+    p.add_argument("--no-energy", action="store_true", help=ENERGY_HELP)
     return p
 
 
@@ -154,7 +159,8 @@ def denoise_main(argv: list[str] | None = None) -> int:
                             model=args.model, reference=args.reference, layer=args.layer,
                             variance_layer=args.variance_layer, rgb_only=args.rgb_only, spp=args.spp,
                             noise_guard=not args.no_noise_guard, max_memory_mb=args.max_memory_mb,
-                            skip_below=args.skip_below, precision=args.precision, flips=args.flips)
+                            skip_below=args.skip_below, precision=args.precision, flips=args.flips,
+                            energy=not args.no_energy)
     result, code = parser.attempt(lambda: denoise_file(cfg))
     if code:
         return code

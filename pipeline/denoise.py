@@ -21,6 +21,7 @@ from imaging.blocks import block_rows, parallel_map, pass_workers
 from imaging.errors import DenoiserError
 from imaging.hashing import file_sha256
 from imaging.tiling import core_for_budget, cores_for_budget
+from pipeline.energy import EnergySettings, correct_in_place
 from pipeline.ensemble import SEPARATOR, combine_in_place, range_suffix, split_spec, spp_range
 from pipeline.noise_guard import DEFAULT_STRENGTH, guard_in_place, strength_for
 
@@ -180,6 +181,7 @@ class DenoiseResult:
     tiles: int
     guard_weight: float | None = None  # noise guard's mean weight of the denoiser (None: no guard)
     guard_map: np.ndarray | None = None  # HxW float32 in [0, 1]: that weight per pixel
+    energy_factor: float | None = None  # mean factor of the energy correction (None: not applied)
     network: np.ndarray | None = None  # the network's output before the guard (``keep_network``)
     models: tuple[str, ...] = ()  # the checkpoints' stems that ran (an ensemble: :meth:`Denoiser.active`)
 
@@ -229,13 +231,14 @@ class Denoiser:
     bfloat16 for a multi-scale network on a CPU with native bfloat16, else float32; the training
     module is always float32). ``flips``: average the network over 1, 2 or 4 mirrored copies of
     each tile (:func:`model.infer.flip_average`): 2x or 4x the network's time for ~0.1 or ~0.2 dB
-    (docs/speed.md).
+    (docs/speed.md). ``energy``: with a variance, match the output's local means to the render's
+    after the guard (:mod:`pipeline.energy`; None: off).
     """
 
     def __init__(self, checkpoint: str | Path | Sequence[str | Path] | None = None,
                  max_memory_mb: float = DEFAULT_MAX_MEMORY_MB, threads: int | None = None,
                  optimize: bool = True, skip_below: float | None = None, precision: str = "auto",
-                 flips: int = 1) -> None:
+                 flips: int = 1, energy: EnergySettings | None = EnergySettings()) -> None:
         import torch
 
         from model.flips import check_flips
@@ -267,6 +270,7 @@ class Denoiser:
         self.max_memory_mb = float(max_memory_mb)
         self.margin = max(m.margin for m in self.members)
         self.skip_below = skip_below
+        self.energy = energy
 
     @property
     def name(self) -> str:
@@ -360,7 +364,7 @@ class Denoiser:
         """
         import torch
 
-        from model.infer import denoise_image
+        from model.infer import PASS_BYTES_PER_PIXEL, denoise_image, exposure_scale
 
         rgb = np.asarray(rgb)
         if rgb.ndim != 3 or rgb.shape[2] != 3 or min(rgb.shape[:2]) < 1:
@@ -400,8 +404,13 @@ class Denoiser:
             weights = np.empty((height, width, 1), np.float32)
             guard_in_place(rgb, out, variance, weights, self.max_bytes, strength=strength, workers=workers)
             weight = float(weights.mean())
+        factor = None
+        if variance is not None and self.energy is not None:
+            exposure = exposure_scale(rgb, block_rows(width, PASS_BYTES_PER_PIXEL, self.max_bytes / workers,
+                                                      -(-height // workers)), workers)
+            factor = correct_in_place(rgb, out, variance, self.max_bytes, exposure, self.energy, workers)
         return DenoiseResult(out, nonfinite, negative, time.perf_counter() - start, count[0], weight,
-                             None if weights is None else weights[:, :, 0], network,
+                             None if weights is None else weights[:, :, 0], factor, network,
                              tuple(m.path.stem for m in members))
 
     def denoise_render(self, render: RenderResult, keep_network: bool = False) -> DenoiseResult:

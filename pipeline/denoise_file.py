@@ -28,6 +28,7 @@ from imaging.exr_layers import (ALBEDO_WORDS, NORMAL_WORDS, VARIANCE_WORDS, ExrF
 from imaging.metrics import all_metrics
 from imaging.render import half_variance
 from pipeline.denoise import Denoiser
+from pipeline.energy import EnergySettings
 from pipeline.noise_guard import DEFAULT_STRENGTH, strength_for
 
 HALVES_BYTES_PER_PIXEL = 128  # combine_halves: float64 temporaries of the mean and the variance
@@ -55,6 +56,7 @@ class DenoiseFileConfig:
     skip_below: float | None = None
     precision: str = "auto"
     flips: int = 1
+    energy: bool = True
 
 
 @dataclass
@@ -152,7 +154,8 @@ def denoise_file(cfg: DenoiseFileConfig) -> dict[str, Any]:
     if len(cfg.inputs) == 2 and cfg.variance_layer is not None:
         raise DenoiserError("two halves give the variance: --variance-layer is for a single input")
     denoiser = Denoiser(cfg.model, max_memory_mb=cfg.max_memory_mb, skip_below=cfg.skip_below,
-                        precision=cfg.precision, flips=cfg.flips)
+                        precision=cfg.precision, flips=cfg.flips,
+                        energy=EnergySettings() if cfg.energy else None)
     images = [read_input(p, cfg.layer, cfg.variance_layer) for p in cfg.inputs]
     image = images[0] if len(images) == 1 else combine_halves(*images, max_bytes=denoiser.max_bytes)
     ref = read_input(cfg.reference).rgb if cfg.reference else None
@@ -174,7 +177,7 @@ def denoise_file(cfg: DenoiseFileConfig) -> dict[str, Any]:
         "negative_values": result.negative,
         "noise_guard": None if variance is None else {
             "variance": image.variance_layer, "spp": spp, "strength": strength,
-            "mean_weight": result.guard_weight}}
+            "mean_weight": result.guard_weight, "energy_factor": result.energy_factor}}
     if ref is not None:
         out["quality"] = {"noisy": all_metrics(image.rgb, ref), "denoised": all_metrics(result.image, ref)}
     return json_safe(out)

@@ -17,7 +17,7 @@ Without a variance (a single EXR) the outputs are averaged.
 (flat in all three: radius 2-5, lam 0.1-1, power 1-2 within 0.05 dB) and scores the result on the
 eval scenes; power 2 rather than 1 because where renders have converged (``benchmarks/noise_guard.py``'s
 converged regime) inverse errors still let the worse output in across a sharp edge (the teapot on
-black: 0.8-1.0 dB lower after the guard), where their squares keep it out. Window sums are exact per tile (:func:`pipeline.noise_guard.box_mean_2d`), so
+black: 0.8-1.0 dB lower after the guard), where their squares keep it out. Window sums are exact per tile (:func:`imaging.box_filter.box_mean_2d`), so
 :func:`combine_in_place` gives the whole-image result bit for bit within any memory bound.
 """
 from __future__ import annotations
@@ -28,8 +28,9 @@ from collections.abc import Sequence
 import numpy as np
 
 from imaging.blocks import row_blocks
+from imaging.box_filter import box_mean_2d
 from imaging.tiling import Tile, core_for_budget, run_windows
-from pipeline.noise_guard import box_mean_2d, channel_sum, clean_render
+from pipeline.noise_guard import channel_sum, clean_render
 
 DEFAULT_RADIUS = 3  # window 7x7 (benchmarks/ensemble.py)
 DEFAULT_LAMBDA = 0.3  # T_k + lam * V (benchmarks/ensemble.py)

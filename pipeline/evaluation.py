@@ -29,6 +29,7 @@ from imaging.exr import read_exr
 from imaging.metrics import all_metrics, flip, psnr, relmse
 from imaging.render import DEFAULT_MAX_MEMORY_MB, RenderResult, load_scene, pass_seeds, prepare, render_loaded
 from pipeline.denoise import DenoiseResult, Denoiser
+from pipeline.energy import EnergySettings
 from pipeline.oidn import oidn_denoise
 
 AOVS = ("albedo", "sh_normal")  # what a model with auxiliary inputs needs rendered
@@ -45,7 +46,8 @@ class RenderSettings:
     output as it is); ``skip_below``: with the halves, leave the parts whose noise is below this out
     of the network (:class:`pipeline.denoise.Denoiser`; None: run it everywhere); ``precision``: the
     denoisers' float format (:mod:`model.precision`); ``flips``: test-time flips of the networks
-    (:mod:`model.flips`); the reference is an EXR file or a render at ``reference_spp`` (another seed)."""
+    (:mod:`model.flips`); ``energy``: with the halves, match the output's local means to the
+    render's (:mod:`pipeline.energy`); the reference is an EXR file or a render at ``reference_spp`` (another seed)."""
 
     scene: str
     resolution: tuple[int, int] | None = None
@@ -56,6 +58,7 @@ class RenderSettings:
     skip_below: float | None = None
     precision: str = "auto"
     flips: int = 1
+    energy: bool = True
     reference: str | None = None
     reference_spp: int | None = None
 
@@ -73,10 +76,10 @@ class RenderSettings:
 
 
 def make_denoiser(model: str | Path | Sequence[str | Path] | None, settings: RenderSettings) -> Denoiser:
-    """The denoiser of ``model`` with the settings' memory bound, precision, flips and, with the
-    halves, skipping."""
+    """The denoiser of ``model`` with the settings' memory bound, precision, flips, energy
+    correction and, with the halves, skipping."""
     return Denoiser(model, max_memory_mb=settings.max_memory_mb, precision=settings.precision,
-                    flips=settings.flips,
+                    flips=settings.flips, energy=EnergySettings() if settings.energy else None,
                     skip_below=settings.skip_below if settings.noise_guard else None)
 
 

@@ -28,6 +28,7 @@ from __future__ import annotations
 import numpy as np
 
 from imaging.blocks import parallel_map, row_blocks
+from imaging.box_filter import box_mean_2d
 from imaging.tiling import Tile, core_for_budget, run_windows
 
 DEFAULT_RADIUS = 2      # window 5x5 (benchmarks/noise_guard.py)
@@ -49,42 +50,6 @@ def strength_for(spp: int, pivot_spp: float = DEFAULT_PIVOT_SPP) -> float:
     Wiener weight. ``pivot_spp = 0``: strength 1 at every spp.
     """
     return max(1.0, pivot_spp / spp)
-
-
-def box_mean_2d(plane: np.ndarray, radius: int) -> np.ndarray:
-    """Mean over a (2r+1)^2 window of an HxW plane, the window cut at the borders; float32.
-    Each sum adds its window's own values in one fixed order (rows, then columns), so a tile
-    computed with ``radius`` pixels of context beside its core equals the whole image's result
-    there bit for bit (a running sum would not, and would lose a dim pixel's sum beside a
-    firefly to cancellation; direct sums of 2r+1 values keep float32's relative precision)."""
-    if radius < 0:
-        raise ValueError(f"radius must be >= 0, got {radius}")
-    height, width = plane.shape
-    plane = np.asarray(plane, np.float32)
-    out = _box_sum_1d(_box_sum_1d(plane, radius, 0), radius, 1)
-    out /= _window_counts(height, radius)[:, None]
-    out /= _window_counts(width, radius)[None, :]
-    return out
-
-
-def _window_counts(n: int, radius: int) -> np.ndarray:
-    """Pixels inside the window ``[i-r, i+r]`` cut to ``[0, n)``, for each i (float32)."""
-    idx = np.arange(n)
-    return (np.minimum(idx + radius, n - 1) - np.maximum(idx - radius, 0) + 1).astype(np.float32)
-
-
-def _box_sum_1d(a: np.ndarray, radius: int, axis: int) -> np.ndarray:
-    """Sum over ``[i-r, i+r]`` along ``axis`` of a 2-D float32 array (indices outside it contribute
-    nothing), added from the window's first index to its last."""
-    n = a.shape[axis]
-    out = np.zeros(a.shape, np.float32)
-    for k in range(-radius, radius + 1):
-        lo, hi = max(0, -k), min(n, n - k)  # the i whose neighbour i+k lies inside
-        if lo < hi:
-            dst = (slice(lo, hi),) if axis == 0 else (slice(None), slice(lo, hi))
-            src = (slice(lo + k, hi + k),) if axis == 0 else (slice(None), slice(lo + k, hi + k))
-            out[dst] += a[src]
-    return out
 
 
 def channel_sum(a: np.ndarray) -> np.ndarray:

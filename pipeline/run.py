@@ -209,7 +209,8 @@ def _metrics(run: _Run) -> dict[str, Any]:
         "render_memory": {**run.render_memory.to_dict(), "budget_mb": cfg.max_memory_mb, "crops": noisy.crops},
     }
     metrics["noise_guard"] = ({"radius": DEFAULT_RADIUS, "pivot_spp": DEFAULT_PIVOT_SPP,
-                               "strength": strength_for(run.spp), "mean_weight": result.guard_weight}
+                               "strength": strength_for(run.spp), "mean_weight": result.guard_weight,
+                               "energy_factor": result.energy_factor}
                               if result.guard_weight is not None else None)
     if run.plan:
         metrics["budget"] = run.plan.to_dict()

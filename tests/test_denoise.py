@@ -12,7 +12,9 @@ from imaging.errors import DenoiserError
 from model.architectures import build_model
 from model.checkpoint import save_checkpoint
 from model.config import ModelConfig
+from model.infer import exposure_scale
 from pipeline.denoise import Denoiser, count_invalid
+from pipeline.energy import correct_in_place
 from pipeline.noise_guard import blend_weight, clean_render, guard
 
 TINY = ModelConfig(layers=3, growth=4, init_features=8)
@@ -79,14 +81,30 @@ def test_budget_leaves_the_whole_chain_unchanged(ckpt: Path) -> None:
 @pytest.mark.parametrize("max_memory_mb", [0.05, 1024])
 def test_guard_per_tile_is_the_whole_image_guard(ckpt: Path, max_memory_mb: float) -> None:
     """The guard run tile by tile on the network's output equals the whole-image guard of that
-    output bit for bit (image, weight map, mean weight)."""
+    output bit for bit (image, weight map, mean weight; the energy correction after it off)."""
     img, variance = _with_noise(61, 47, seed=5)
-    res = Denoiser(ckpt, max_memory_mb=max_memory_mb).denoise_array(img, variance=variance, strength=3.0,
-                                                                    keep_network=True)
+    res = Denoiser(ckpt, max_memory_mb=max_memory_mb, energy=None).denoise_array(
+        img, variance=variance, strength=3.0, keep_network=True)
     expected, mean = guard(clean_render(img), res.network, variance, strength=3.0)
     assert np.array_equal(res.image, expected) and not np.array_equal(res.image, res.network)
     assert res.guard_weight == mean
     assert np.array_equal(res.guard_map, blend_weight(clean_render(img), res.network, variance, strength=3.0)[..., 0])
+
+
+def test_energy_correction_follows_the_guard_only_with_a_variance(ckpt: Path) -> None:
+    """With a variance the output is the uncorrected one matched by pipeline.energy at the
+    image's exposure, bit for bit; without one, or with energy=None, nothing is corrected."""
+    img, variance = _with_noise(61, 47, seed=6)
+    img *= np.linspace(0.5, 1.5, 47, dtype=np.float32)[None, :, None]
+    plain = Denoiser(ckpt, energy=None).denoise_array(img, variance=variance, strength=3.0)
+    corrected = Denoiser(ckpt).denoise_array(img, variance=variance, strength=3.0)
+    expected = plain.image.copy()
+    factor = correct_in_place(img, expected, variance, 2**30, exposure_scale(img))
+    assert np.array_equal(corrected.image, expected) and not np.array_equal(expected, plain.image)
+    assert corrected.energy_factor == factor and plain.energy_factor is None
+    alone = Denoiser(ckpt).denoise_array(img)
+    assert alone.energy_factor is None
+    assert np.array_equal(alone.image, Denoiser(ckpt, energy=None).denoise_array(img).image)
 
 
 def test_count_invalid_in_row_blocks() -> None:

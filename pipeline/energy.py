@@ -1,0 +1,169 @@
+"""Give a denoised image back the local mean radiance of the render where the render proves it.
+
+A network trained with L1 in a compressive transfer space (PU, log) predicts something close to the
+median of the radiance it cannot resolve, not its mean: at a few spp, where a pixel's estimate is
+a few bright samples among dark ones, it comes out darker than the truth. Measured on the eval
+scenes at 4 spp the default model kept 95% of the reference's mean radiance (80-99% per scene,
+OIDN 98-113%). The render itself is an unbiased estimate of that mean: averaged over a wide
+window its noise is small, so the output's window mean can be matched to it.
+
+Per channel, with ``a`` the render's and ``b`` the output's mean over a window of about 40 px
+(``block`` x ``block`` pixel blocks, a (2r+1)^2 window of blocks), the output is multiplied by
+``1 + w * (clip(a / b, 1/max_ratio, max_ratio) - 1)``, the ratio map interpolated bilinearly
+between block centres. ``w = d^2 / (d^2 + k * se^2)`` with ``d = a - b`` and ``se^2`` the
+variance of ``a`` (the window mean of the render's per-pixel variance over the window's pixel
+count, from its two halves): where the difference is within the render's own noise the output is
+left alone; where it is several standard errors off, matched. Values are clamped at ``clamp``
+(radiance after the network's exposure scale, :func:`model.infer.exposure_scale`; variance at
+its square) before averaging: one firefly of 1000 would otherwise make a whole window's mean.
+Without a variance there is no ``se`` to trust the render by, and nothing is changed.
+
+``benchmarks/energy.py`` measured the settings on our held-out scenes (2-16 spp) and scores them
+on ../shared/eval-scenes (docs/noise-guard.md, "Energy").
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from imaging.blocks import parallel_map, row_blocks
+from imaging.box_filter import box_sum_2d
+
+# Peak scratch bytes per pixel of a row block in :func:`_block_sums` (a clamped float32 copy and
+# float64 partial sums of it) and :func:`_apply_rows` (the interpolated float32 ratios and one row
+# temporary): a bound with headroom of what tests/test_energy.py measures with tracemalloc.
+ENERGY_BYTES_PER_PIXEL = 48
+
+
+@dataclass(frozen=True)
+class EnergySettings:
+    """``clamp``: radiance (after exposure) at which values are clamped before averaging;
+    ``block``: pixels per block side; ``radius``: the window's radius in blocks; ``max_ratio``:
+    the largest factor either way; ``significance``: ``k``, standard errors squared that a
+    difference must exceed to be half matched."""
+
+    clamp: float = 16.0
+    block: int = 8
+    radius: int = 2
+    max_ratio: float = 1.5
+    significance: float = 4.0
+
+    def __post_init__(self) -> None:
+        if not (self.clamp > 0 and np.isfinite(self.clamp)):
+            raise ValueError(f"clamp must be positive and finite, got {self.clamp}")
+        if self.block < 1 or self.radius < 0:
+            raise ValueError(f"block must be >= 1 and radius >= 0, got {self.block}, {self.radius}")
+        if not (self.max_ratio >= 1 and np.isfinite(self.max_ratio)):
+            raise ValueError(f"max_ratio must be >= 1 and finite, got {self.max_ratio}")
+        if not (self.significance >= 0 and np.isfinite(self.significance)):
+            raise ValueError(f"significance must be >= 0 and finite, got {self.significance}")
+
+
+def _clean(x: np.ndarray, bound: float) -> np.ndarray:
+    """float32 copy of ``x`` clamped to [0, bound] (NaN -> 0, +Inf -> bound)."""
+    out = np.array(x, dtype=np.float32)
+    np.putmask(out, np.isnan(out), 0.0)
+    return np.clip(out, 0.0, bound, out=out)
+
+
+def _block_sums(x: np.ndarray, block: int) -> np.ndarray:
+    """(ceil(H/block) x ceil(W/block) x C) float64 sums of an HxWxC float32 array's blocks (the
+    last row and column of blocks may be partial)."""
+    height, width, channels = x.shape
+    h, w = -(-height // block), -(-width // block)
+    padded = np.zeros((h * block, w * block, channels), np.float32)
+    padded[:height, :width] = x
+    return padded.reshape(h, block, w, block, channels).sum(axis=(1, 3), dtype=np.float64)
+
+
+def block_statistics(noisy: np.ndarray, denoised: np.ndarray, variance: np.ndarray, bound: float,
+                     block: int, max_bytes: float, workers: int = 1) -> tuple[np.ndarray, ...]:
+    """Per block of ``block`` x ``block`` pixels: sums of the render, of the output (both clamped
+    to [0, bound], NaN and negatives -> 0) and of the variance (clamped to [0, bound^2], non-finite
+    -> bound^2: unknown, so as uncertain as a clamped value can be), each hxwx3 float64, and the
+    blocks' pixel counts (hxwx1). Row blocks of whole pixel blocks within ``max_bytes``."""
+    height, width = denoised.shape[:2]
+    rows = max(block, (next(row_blocks(height, width, ENERGY_BYTES_PER_PIXEL, max_bytes / max(1, workers),
+                                       workers)).stop // block) * block)
+
+    def sums(y: int) -> tuple[np.ndarray, ...]:
+        part = slice(y, min(height, y + rows))
+        var = np.array(variance[part], dtype=np.float32)
+        np.putmask(var, ~np.isfinite(var), bound * bound)
+        return (_block_sums(_clean(noisy[part], bound), block), _block_sums(_clean(denoised[part], bound), block),
+                _block_sums(np.clip(var, 0.0, bound * bound, out=var), block))
+
+    parts = parallel_map(sums, range(0, height, rows), workers)
+    stats = [np.concatenate([p[i] for p in parts], axis=0) for i in range(3)]
+    counts = np.outer(np.minimum(block, height - np.arange(0, height, block)),
+                      np.minimum(block, width - np.arange(0, width, block))).astype(np.float64)[..., None]
+    return (*stats, counts)
+
+
+def _window_sums(x: np.ndarray, radius: int) -> np.ndarray:
+    """Per-channel (2r+1)^2 window sums of an hxwxC array of block values, float64."""
+    return np.stack([box_sum_2d(x[:, :, c], radius) for c in range(x.shape[2])], axis=2).astype(np.float64)
+
+
+def ratio_map(noisy_sums: np.ndarray, out_sums: np.ndarray, var_sums: np.ndarray, counts: np.ndarray,
+              settings: EnergySettings) -> np.ndarray:
+    """hxwx3 float32 factor per block (the module's formula) from :func:`block_statistics`."""
+    n = _window_sums(counts, settings.radius)  # float32 sums: clamped values keep them far from its limits
+    a = _window_sums(noisy_sums, settings.radius) / n
+    b = _window_sums(out_sums, settings.radius) / n
+    se2 = _window_sums(var_sums, settings.radius) / (n * n)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = np.clip(a / b, 1.0 / settings.max_ratio, settings.max_ratio)
+        d2 = (a - b) ** 2
+        w = d2 / (d2 + settings.significance * se2)
+    ratio = 1.0 + np.nan_to_num(w, nan=0.0) * (ratio - 1.0)
+    return np.where(b > 0, ratio, 1.0).astype(np.float32)
+
+
+def _interpolation(n: int, cells: int, block: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For pixels 0..n-1: the two block indices around each pixel centre and the second's weight."""
+    pos = (np.arange(n) + 0.5) / block - 0.5
+    lo = np.clip(np.floor(pos).astype(np.int64), 0, cells - 1)
+    hi = np.minimum(lo + 1, cells - 1)
+    return lo, hi, np.clip(pos - lo, 0.0, 1.0).astype(np.float32)
+
+
+def _apply_rows(denoised: np.ndarray, ratio: np.ndarray, rows: slice, block: int) -> None:
+    """Multiply ``denoised[rows]`` in place by ``ratio`` interpolated bilinearly to its pixels."""
+    height, width = denoised.shape[:2]
+    y0, y1, fy = (a[rows] for a in _interpolation(height, ratio.shape[0], block))
+    x0, x1, fx = _interpolation(width, ratio.shape[1], block)
+    column = ratio[y0] * (1.0 - fy)[:, None, None] + ratio[y1] * fy[:, None, None]  # rows x w x 3
+    factor = column[:, x0] * (1.0 - fx)[None, :, None]
+    factor += column[:, x1] * fx[None, :, None]
+    denoised[rows] *= factor
+
+
+def correct_in_place(noisy: np.ndarray, denoised: np.ndarray, variance: np.ndarray, max_bytes: float,
+                     exposure: float = 1.0, settings: EnergySettings = EnergySettings(),
+                     workers: int = 1) -> float:
+    """Match ``denoised``'s local means to ``noisy``'s as the module describes, in place.
+
+    ``noisy``: HxWx3 render (any float dtype), ``variance``: its HxWx3 per-pixel variance (two
+    halves); ``denoised``: HxWx3 float32 >= 0, changed in place (stays >= 0 and finite);
+    ``exposure``: the factor the network scaled the radiance by (``clamp`` applies after it).
+    Scratch memory: row blocks within ``max_bytes`` (``workers`` of them at a time on threads)
+    plus the block maps (about 1/block^2 of the image each). Returns the mean factor applied
+    (pixel-weighted over the three channels; 1: nothing changed).
+    """
+    if not noisy.shape == denoised.shape == variance.shape or denoised.ndim != 3 or denoised.shape[2] != 3:
+        raise ValueError(f"shapes differ or are not HxWx3: noisy {noisy.shape}, denoised {denoised.shape}, "
+                         f"variance {variance.shape}")
+    if not (exposure > 0 and np.isfinite(exposure)):
+        raise ValueError(f"exposure must be positive and finite, got {exposure}")
+    if denoised.size == 0:
+        return 1.0
+    bound = settings.clamp / exposure
+    noisy_sums, out_sums, var_sums, counts = block_statistics(noisy, denoised, variance, bound, settings.block,
+                                                              max_bytes, workers)
+    ratio = ratio_map(noisy_sums, out_sums, var_sums, counts, settings)
+    height, width = denoised.shape[:2]
+    parallel_map(lambda rows: _apply_rows(denoised, ratio, rows, settings.block),
+                 row_blocks(height, width, ENERGY_BYTES_PER_PIXEL, max_bytes / max(1, workers), workers), workers)
+    return float((ratio * counts).sum() / (3.0 * counts.sum()))
