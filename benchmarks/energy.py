@@ -32,7 +32,8 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from benchmarks.eval_scenes import CEILING_DB, EVAL_DIR, RESULTS, SEED, eval_scenes, finish_record, run_record, save_result
+from benchmarks.eval_scenes import (CEILING_DB, EVAL_DIR, RESULTS, SEED, finish_record, run_record, save_result,
+                                    scored_renders)
 from benchmarks.validation import val_images
 from imaging.metrics import psnr
 from imaging.render import RenderResult
@@ -40,7 +41,6 @@ from imaging.usage import COMMAND_ERRORS, OneLineParser, int_list
 from model.infer import exposure_scale
 from pipeline.denoise import DEFAULT_MODEL, Denoiser
 from pipeline.energy import EnergySettings, correct_in_place
-from pipeline.evaluation import render_input
 from pipeline.oidn import oidn_denoise
 
 NONE = "none"
@@ -81,14 +81,8 @@ def validation_rows(folders: list[Path], denoiser: Denoiser,
 
 def eval_rows(spps: list[int], denoiser: Denoiser, settings: list[EnergySettings],
               eval_dir: Path = EVAL_DIR) -> Iterator[tuple[int, dict[str, float]]]:
-    for scene in tqdm(eval_scenes(None, eval_dir), desc="eval scenes", unit="scene"):
-        if scene.ceiling_db < CEILING_DB:
-            continue
-        ref = scene.reference()
-        case = scene.settings(resolution=(ref.shape[1], ref.shape[0]))
-        loaded = case.load()
-        for spp in spps:
-            yield spp, score_image(render_input(loaded, spp, case), ref, denoiser, settings)
+    for spp, render, ref in scored_renders(None, spps, eval_dir):
+        yield spp, score_image(render, ref, denoiser, settings)
 
 
 def summarize(rows: Iterator[tuple[int, dict[str, float]]], labels: list[str]) -> dict[str, Any]:

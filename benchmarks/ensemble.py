@@ -31,14 +31,14 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from benchmarks.eval_scenes import CEILING_DB, EVAL_DIR, RESULTS, SEED, eval_scenes, finish_record, run_record, save_result
+from benchmarks.eval_scenes import (CEILING_DB, EVAL_DIR, RESULTS, SEED, finish_record, run_record, save_result,
+                                    scored_renders)
 from benchmarks.validation import val_images
 from imaging.metrics import psnr
 from imaging.render import RenderResult
 from imaging.usage import COMMAND_ERRORS, OneLineParser, int_list, name_list, positive_int
 from pipeline.denoise import Denoiser
 from pipeline.ensemble import DEFAULT_LAMBDA, DEFAULT_POWER, DEFAULT_RADIUS, combine
-from pipeline.evaluation import render_input
 from pipeline.noise_guard import guard, strength_for
 from pipeline.oidn import oidn_denoise
 
@@ -78,14 +78,8 @@ def validation_rows(folders: list[Path], members: dict[str, Denoiser], settings:
 
 def eval_rows(names: list[str] | None, spps: list[int], members: dict[str, Denoiser],
               settings: list[Setting], eval_dir: Path = EVAL_DIR) -> Iterator[tuple[int, dict[str, float]]]:
-    for scene in tqdm(eval_scenes(names, eval_dir), desc="eval scenes", unit="scene"):
-        if scene.ceiling_db < CEILING_DB:
-            continue
-        ref = scene.reference()
-        case = scene.settings(resolution=(ref.shape[1], ref.shape[0]))
-        loaded = case.load()
-        for spp in spps:
-            yield spp, score_image(render_input(loaded, spp, case), ref, members, settings)
+    for spp, render, ref in scored_renders(names, spps, eval_dir):
+        yield spp, score_image(render, ref, members, settings)
 
 
 def summarize(rows: Iterator[tuple[int, dict[str, float]]]) -> dict[str, Any]:

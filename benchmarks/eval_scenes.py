@@ -7,7 +7,7 @@ import json
 import os
 import shlex
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
@@ -18,7 +18,8 @@ import numpy as np
 from imaging.atomic_io import write_json_atomic, write_text_atomic
 from imaging.errors import DenoiserError
 from imaging.exr import read_exr
-from pipeline.evaluation import RenderSettings
+from imaging.render import RenderResult
+from pipeline.evaluation import RenderSettings, render_input
 
 ROOT = Path(__file__).resolve().parents[1]
 EVAL_DIR = ROOT.parent / "shared" / "eval-scenes"
@@ -77,6 +78,23 @@ def eval_scenes(names: Sequence[str] | None = None, eval_dir: Path = EVAL_DIR) -
             raise DenoiserError(f"unknown scene(s) in {eval_dir}: {', '.join(unknown)}")
         scenes = [s for s in scenes if s.name in names]
     return scenes
+
+
+def scored_renders(names: Sequence[str] | None, spps: Sequence[int],
+                   eval_dir: Path = EVAL_DIR) -> Iterator[tuple[int, RenderResult, np.ndarray]]:
+    """``(spp, render, reference)`` for every scored scene (ceiling >= :data:`CEILING_DB`) of
+    ``names`` and every spp: rendered as ``render-and-denoise`` does (two halves, seed
+    :data:`SEED`), each scene loaded once, a progress bar over the scenes."""
+    from tqdm import tqdm
+
+    for scene in tqdm(eval_scenes(names, eval_dir), desc="eval scenes", unit="scene"):
+        if scene.ceiling_db < CEILING_DB:
+            continue
+        ref = scene.reference()
+        case = scene.settings(resolution=(ref.shape[1], ref.shape[0]))
+        loaded = case.load()
+        for spp in spps:
+            yield spp, render_input(loaded, spp, case), ref
 
 
 def run_record(module: str, argv: Sequence[str]) -> dict[str, Any]:

@@ -2,8 +2,8 @@
 
 Each scene at each spp (default 4, 16 and 128; seed 7, as the scenes' reference.json) goes through
 the path ``render-and-denoise`` takes (:func:`pipeline.evaluation.evaluate`): a render in two halves,
-each model with its noise input and the noise guard ("ours", the default path), the same network
-output before the guard as extra columns ("bare"), and OIDN colour-only on the same render. All are
+each model with its noise input, the noise guard and the energy correction ("ours", the default
+path), the same network output before the guard as extra columns ("bare"), and OIDN colour-only on the same render. All are
 scored against the stored 2048-spp ``reference.exr``: PSNR (tonemapped x/(1+x), gamma 1/2.2),
 relMSE (eps 0.01), FLIP (LDR), and denoise seconds. Scenes whose reference noise ceiling
 (``reference_psnr_ceiling_db``) is below ``--ceiling-db`` are reported but flagged and left out of
@@ -45,8 +45,8 @@ from pipeline.viewer import Page, Table, ViewerRow, ViewerSet, flip_map
 METRICS = ("psnr", "relmse", "flip")
 WHO = ("noisy", "ours", "ours_bare", "oidn")  # the columns of the per-scene table
 PATH = ("render in two halves at the seed; ours: each model as render-and-denoise applies it (noise "
-        "input, noise guard); bare: the same network output before the guard; OIDN 2.5 colour-only "
-        "on the same render")
+        "input, noise guard, energy correction); bare: the same network output before the guard; OIDN 2.5 "
+        "colour-only on the same render")
 
 
 def evaluate_scene(scene: EvalScene, spps: list[int], denoisers: dict[str, Denoiser],
@@ -113,7 +113,7 @@ def markdown(rows: dict[str, Any], summary: dict[str, Any], spps: list[int], cei
     labels = ("noisy", "ours", "bare", "OIDN")
     cols = [f"{who} {metric}" for metric in ("PSNR", "relMSE", "FLIP") for who in labels]
     lines = [f"Model `{model}`; PSNR dB (tonemapped) / relMSE / FLIP against the 2048-spp references; "
-             f"ours = the default path (halves, noise input, guard), bare = the network before the guard; "
+             f"ours = the default path (halves, noise input, guard, energy correction), bare = the network before the guard; "
              f"* = reference ceiling below {ceiling_db:g} dB (not in the scored mean).", "",
              "| scene | spp | " + " | ".join(cols) + " | ours s | OIDN s |",
              "|---|---:|" + "---:|" * (len(cols) + 2)]

@@ -30,10 +30,10 @@ import numpy as np
 from imaging.blocks import parallel_map, row_blocks
 from imaging.box_filter import box_sum_2d
 
-# Peak scratch bytes per pixel of a row block in :func:`_block_sums` (a clamped float32 copy and
-# float64 partial sums of it) and :func:`_apply_rows` (the interpolated float32 ratios and one row
-# temporary): a bound with headroom of what tests/test_energy.py measures with tracemalloc.
-ENERGY_BYTES_PER_PIXEL = 48
+# Peak scratch bytes per pixel of a row block: a clamped float32 copy summed by :func:`_block_sums`
+# (12 + 1.5), or :func:`_apply_rows`' interpolated factors and their lower half (24): a bound with
+# headroom of what tests/test_energy.py measures with tracemalloc.
+ENERGY_BYTES_PER_PIXEL = 32
 
 
 @dataclass(frozen=True)
@@ -60,39 +60,50 @@ class EnergySettings:
             raise ValueError(f"significance must be >= 0 and finite, got {self.significance}")
 
 
-def _clean(x: np.ndarray, bound: float) -> np.ndarray:
-    """float32 copy of ``x`` clamped to [0, bound] (NaN -> 0, +Inf -> bound)."""
+def _scaled(x: np.ndarray, exposure: float, clamp: float) -> np.ndarray:
+    """float32 copy of radiance ``x`` times ``exposure``, clamped to [0, clamp] (NaN -> 0; clamped
+    before scaling, so nothing overflows)."""
     out = np.array(x, dtype=np.float32)
     np.putmask(out, np.isnan(out), 0.0)
-    return np.clip(out, 0.0, bound, out=out)
+    np.clip(out, 0.0, clamp / exposure, out=out)
+    out *= np.float32(exposure)
+    return np.clip(out, 0.0, clamp, out=out)
+
+
+def _scaled_variance(v: np.ndarray, exposure: float, clamp: float) -> np.ndarray:
+    """float32 copy of variance ``v`` times ``exposure^2``, clamped to [0, clamp^2]; non-finite
+    (also where the product overflows) -> clamp^2: unknown, so as uncertain as a clamped value."""
+    out = np.array(v, dtype=np.float32)
+    with np.errstate(over="ignore", under="ignore", invalid="ignore"):
+        out *= np.float32(exposure)  # twice: exposure^2 itself may lie outside float32 (2^+-64)
+        out *= np.float32(exposure)
+    np.putmask(out, ~np.isfinite(out), clamp * clamp)
+    return np.clip(out, 0.0, clamp * clamp, out=out)
 
 
 def _block_sums(x: np.ndarray, block: int) -> np.ndarray:
     """(ceil(H/block) x ceil(W/block) x C) float64 sums of an HxWxC float32 array's blocks (the
-    last row and column of blocks may be partial)."""
-    height, width, channels = x.shape
-    h, w = -(-height // block), -(-width // block)
-    padded = np.zeros((h * block, w * block, channels), np.float32)
-    padded[:height, :width] = x
-    return padded.reshape(h, block, w, block, channels).sum(axis=(1, 3), dtype=np.float64)
+    last row and column of blocks may be partial): down the rows in float32 (``block`` values, a
+    1/block-size result), then across in float64; no copy of the input."""
+    rows = np.add.reduceat(x, np.arange(0, x.shape[0], block), axis=0)
+    return np.add.reduceat(rows.astype(np.float64), np.arange(0, x.shape[1], block), axis=1)
 
 
-def block_statistics(noisy: np.ndarray, denoised: np.ndarray, variance: np.ndarray, bound: float,
-                     block: int, max_bytes: float, workers: int = 1) -> tuple[np.ndarray, ...]:
-    """Per block of ``block`` x ``block`` pixels: sums of the render, of the output (both clamped
-    to [0, bound], NaN and negatives -> 0) and of the variance (clamped to [0, bound^2], non-finite
-    -> bound^2: unknown, so as uncertain as a clamped value can be), each hxwx3 float64, and the
-    blocks' pixel counts (hxwx1). Row blocks of whole pixel blocks within ``max_bytes``."""
+def block_statistics(noisy: np.ndarray, denoised: np.ndarray, variance: np.ndarray, exposure: float,
+                     clamp: float, block: int, max_bytes: float, workers: int = 1) -> tuple[np.ndarray, ...]:
+    """Per block of ``block`` x ``block`` pixels, at the network's ``exposure``: sums of the render
+    and of the output (:func:`_scaled`) and of the variance (:func:`_scaled_variance`), each
+    hxwx3 float64, and the blocks' pixel counts (hxwx1). Row blocks of whole pixel blocks within
+    ``max_bytes``."""
     height, width = denoised.shape[:2]
     rows = max(block, (next(row_blocks(height, width, ENERGY_BYTES_PER_PIXEL, max_bytes / max(1, workers),
                                        workers)).stop // block) * block)
 
     def sums(y: int) -> tuple[np.ndarray, ...]:
         part = slice(y, min(height, y + rows))
-        var = np.array(variance[part], dtype=np.float32)
-        np.putmask(var, ~np.isfinite(var), bound * bound)
-        return (_block_sums(_clean(noisy[part], bound), block), _block_sums(_clean(denoised[part], bound), block),
-                _block_sums(np.clip(var, 0.0, bound * bound, out=var), block))
+        return (_block_sums(_scaled(noisy[part], exposure, clamp), block),
+                _block_sums(_scaled(denoised[part], exposure, clamp), block),
+                _block_sums(_scaled_variance(variance[part], exposure, clamp), block))
 
     parts = parallel_map(sums, range(0, height, rows), workers)
     stats = [np.concatenate([p[i] for p in parts], axis=0) for i in range(3)]
@@ -129,14 +140,23 @@ def _interpolation(n: int, cells: int, block: int) -> tuple[np.ndarray, np.ndarr
     return lo, hi, np.clip(pos - lo, 0.0, 1.0).astype(np.float32)
 
 
-def _apply_rows(denoised: np.ndarray, ratio: np.ndarray, rows: slice, block: int) -> None:
-    """Multiply ``denoised[rows]`` in place by ``ratio`` interpolated bilinearly to its pixels."""
-    height, width = denoised.shape[:2]
-    y0, y1, fy = (a[rows] for a in _interpolation(height, ratio.shape[0], block))
+def _across(ratio: np.ndarray, width: int, block: int) -> np.ndarray:
+    """hxWx3 float32: each row of the block map interpolated linearly to the pixel columns."""
     x0, x1, fx = _interpolation(width, ratio.shape[1], block)
-    column = ratio[y0] * (1.0 - fy)[:, None, None] + ratio[y1] * fy[:, None, None]  # rows x w x 3
-    factor = column[:, x0] * (1.0 - fx)[None, :, None]
-    factor += column[:, x1] * fx[None, :, None]
+    out = ratio[:, x0] * (1.0 - fx)[None, :, None]
+    out += ratio[:, x1] * fx[None, :, None]
+    return out
+
+
+def _apply_rows(denoised: np.ndarray, across: np.ndarray, rows: slice, block: int) -> None:
+    """Multiply ``denoised[rows]`` in place by :func:`_across`'s map interpolated down to its rows."""
+    y0, y1, fy = (a[rows] for a in _interpolation(denoised.shape[0], across.shape[0], block))
+    factor = across[y0]
+    factor *= (1.0 - fy)[:, None, None]
+    lower = across[y1]
+    lower *= fy[:, None, None]
+    factor += lower
+    del lower
     denoised[rows] *= factor
 
 
@@ -159,11 +179,11 @@ def correct_in_place(noisy: np.ndarray, denoised: np.ndarray, variance: np.ndarr
         raise ValueError(f"exposure must be positive and finite, got {exposure}")
     if denoised.size == 0:
         return 1.0
-    bound = settings.clamp / exposure
-    noisy_sums, out_sums, var_sums, counts = block_statistics(noisy, denoised, variance, bound, settings.block,
-                                                              max_bytes, workers)
+    noisy_sums, out_sums, var_sums, counts = block_statistics(noisy, denoised, variance, exposure, settings.clamp,
+                                                              settings.block, max_bytes, workers)
     ratio = ratio_map(noisy_sums, out_sums, var_sums, counts, settings)
     height, width = denoised.shape[:2]
-    parallel_map(lambda rows: _apply_rows(denoised, ratio, rows, settings.block),
+    across = _across(ratio, width, settings.block)
+    parallel_map(lambda rows: _apply_rows(denoised, across, rows, settings.block),
                  row_blocks(height, width, ENERGY_BYTES_PER_PIXEL, max_bytes / max(1, workers), workers), workers)
     return float((ratio * counts).sum() / (3.0 * counts.sum()))

@@ -250,6 +250,8 @@ def summary_lines(metrics: dict[str, Any]) -> list[str]:
     if guarded:
         lines.append(f"noise guard: mean weight of the denoiser's output {guarded['mean_weight']:.3f} "
                      "(1: unchanged)")
+        if guarded.get("energy_factor") is not None:
+            lines.append(f"energy correction: mean factor {guarded['energy_factor']:.3f} (1: unchanged)")
     budget = metrics.get("budget")
     if budget:
         lines.append(f"time budget {budget['budget_s']:g} s: chose {budget['model']} at {budget['spp']} spp "

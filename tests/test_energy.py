@@ -117,17 +117,34 @@ def _traced_peak(fn) -> int:
         tracemalloc.stop()
 
 
+@pytest.mark.parametrize("shape", [(64, 64), (300, 300), (100, 37), (1, 500), (500, 3)])
+def test_scratch_per_pixel_stays_under_its_stated_bound(shape: tuple[int, int]) -> None:
+    """One row block holding the whole image: within ENERGY_BYTES_PER_PIXEL per pixel, plus the
+    block maps (about ten float64 maps of 3 channels, 240 bytes a block, and the hxWx3 float32
+    interpolation across) and 16 KiB of Python objects."""
+    rng = np.random.default_rng(5)
+    denoised = rng.random((*shape, 3), dtype=np.float32)
+    noisy, variance = denoised * 1.2, np.full_like(denoised, 0.01)
+    pixels = shape[0] * shape[1]
+    h, w = shape[0] // 8 + 1, shape[1] // 8 + 1
+    maps = 300 * h * w + 12 * h * shape[1]
+    peak = _traced_peak(lambda: correct_in_place(noisy, denoised, variance, BIG))
+    assert peak <= ENERGY_BYTES_PER_PIXEL * pixels + maps + 16384
+
+
 @pytest.mark.parametrize("workers", [1, 2])
 def test_the_correction_stays_within_its_budget(workers: int) -> None:
-    """A 600x500 image within 2 MB of row blocks plus the block maps (a few 1/64ths of the image's
-    bytes): the whole image at once would need ~14 MB."""
+    """A 600x500 image within 2 MB of row blocks plus the block maps (as in the test above), also
+    with two threads at once (tracemalloc counts every thread's allocations); the whole image in
+    one block takes several times that."""
     rng = np.random.default_rng(4)
     denoised = rng.random((600, 500, 3), dtype=np.float32)
     noisy, variance = denoised * 1.1, np.full_like(denoised, 0.01)
-    maps = 16 * denoised.nbytes / 64
+    maps = 300 * 76 * 63 + 12 * 76 * 500
     peak = _traced_peak(lambda: correct_in_place(noisy, denoised, variance, 2e6, workers=workers))
     assert peak <= 2e6 * 1.1 + maps
-    assert ENERGY_BYTES_PER_PIXEL * 600 * 500 > 5 * peak
+    whole = denoised.copy()
+    assert _traced_peak(lambda: correct_in_place(noisy, whole, variance, BIG)) > 2 * peak
 
 
 def test_bad_arguments_are_refused() -> None:

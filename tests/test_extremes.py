@@ -114,6 +114,32 @@ def test_any_radiance_gives_finite_nonnegative_bounded_output(tiled: Denoiser, i
     assert res.nonfinite == int((~np.isfinite(img)).sum())
 
 
+@settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.too_slow,
+                                                                 HealthCheck.data_too_large])
+@given(img=images)
+def test_any_radiance_and_variance_through_guard_and_energy_correction(tiled: Denoiser, img: np.ndarray) -> None:
+    """The whole default path with a variance as bad as the image (NaN, Inf, negatives, 0, huge):
+    finite, non-negative, the energy factor within its bounds."""
+    res = tiled.denoise_array(img, variance=img[::-1, ::-1].copy(), strength=16.0)
+    assert np.isfinite(res.image).all() and res.image.min() >= 0.0
+    assert res.energy_factor is not None and 1 / 1.5 - 1e-6 <= res.energy_factor <= 1.5 + 1e-6
+
+
+@pytest.mark.parametrize("mean", [1e-4, 1e3])
+def test_exposure_extremes_scale_the_energy_correction_with_the_image(tiled: Denoiser, mean: float) -> None:
+    """Its clamp applies after the network's exposure scale: a render and its variance at a mean of
+    about 1e-4 or 1e3, and the same 4x brighter (both outside the exposure band, so the network sees
+    one input), give the same factor and outputs 4x apart."""
+    img = _image(40, 33, seed=3) ** 2
+    img *= np.float32(2.0 ** round(math.log2(mean / img.mean())))
+    variance = img * img * 0.05
+    a = tiled.denoise_array(img, variance=variance, strength=16.0)
+    b = tiled.denoise_array(img * 4, variance=variance * 16, strength=16.0)
+    assert exposure_scale(img) != 1.0 and a.energy_factor != 1.0
+    assert b.energy_factor == pytest.approx(a.energy_factor, rel=1e-6)
+    np.testing.assert_allclose(b.image, a.image * 4, rtol=1e-5)
+
+
 @pytest.mark.parametrize("bad, replaced_by", [(math.nan, 0.0), (-math.inf, 0.0), (-5.0, 0.0),
                                               (math.inf, HDR_MAX), (1e6, HDR_MAX)])
 def test_bad_pixel_stays_local_and_wipes_no_tile(tiled: Denoiser, bad: float, replaced_by: float) -> None:

@@ -56,6 +56,7 @@ def test_render_and_denoise_writes_everything(demo_run: Path, ckpt: Path) -> Non
     assert read_exr(demo_run / "denoised.exr").rgb.shape == (24, 32, 3)
     html = (demo_run / "report.html").read_text()
     assert "PSNR" in html and "OIDN" in html and 'data-dtype="f16"' in html and "noise guard weight" in html
+    assert "energy correction" in html and "mean factor" in html
 
 
 def test_reference_file_and_no_reference(tmp_path: Path, demo_run: Path, ckpt: Path) -> None:
