@@ -2,14 +2,18 @@
 measurement behind its settings.
 
 Each image is denoised once as ``render-and-denoise`` does it with the correction off (the
-default model, noise input and guard from the render's halves); the output is then corrected
-with every ``--settings`` (clamp, window radius in blocks, significance k; block 8 px and
-max ratio 1.5 as the defaults) and scored, beside OIDN colour-only on the same render. Two sets:
+default model, noise input and guard from the render's halves where it has them); the output is
+then corrected with every ``--settings`` (clamp, window radius in blocks, significance k; block
+8 px and max ratio 1.5 as the defaults) and scored, beside OIDN colour-only on the same render.
+Column ``halves``: the default settings with the variance of the render's two halves in place of
+each block's sample variance (images that have halves). Two sets:
 
-* ``validation`` (the tuning set): the held-out ``val`` scenes of ``--data`` folders, every image
-  with a variance layer (2-16 spp in the datasets of docs/training.md), against their references.
+* ``validation`` (the tuning set): the held-out ``val`` scenes of ``--data`` folders at every spp
+  (1-16 in the datasets of docs/training.md; a variance layer from 2 spp up), against their references.
 * ``eval``: ../shared/eval-scenes rendered in two halves at seed 7 at ``--spp``, against their
   2048-spp references; the scenes whose reference ceiling is >= 40 dB.
+* ``one-piece``: the same scenes rendered in one piece at ``--one-piece-spp`` (no halves, so no
+  guard: a 1-spp render, ``--no-noise-guard``, a file from elsewhere).
 
 Per spp: mean PSNR dB (tonemapped) of each column, how many images a setting made worse by more
 than 0.05 dB and its worst change, and the mean radiance kept (image / reference) without the
@@ -17,7 +21,7 @@ correction, with the default settings and by OIDN. Then the default correction's
 1280x720 image (median of 5, on torch's threads, within the Denoiser's default memory bound).
 
     python -m benchmarks.energy --data data/train256 --data data/media256 [--spp 4,16,128]
-        [--settings 16:2:4,8:2:4,...] [--eval-dir DIR]
+        [--one-piece-spp 1,4,128,1024] [--settings 16:2:4,8:2:4,...] [--eval-dir DIR]
 
 Writes benchmarks/results/energy.json and energy.md.
 """
@@ -40,10 +44,11 @@ from imaging.render import RenderResult
 from imaging.usage import COMMAND_ERRORS, OneLineParser, int_list
 from model.infer import exposure_scale
 from pipeline.denoise import DEFAULT_MODEL, Denoiser
-from pipeline.energy import EnergySettings, correct_in_place
+from pipeline.energy import EnergySettings, apply_ratio, block_statistics, block_sums, correct_in_place, ratio_map
 from pipeline.oidn import oidn_denoise
 
 NONE = "none"
+HALVES = "halves"
 WORSE_DB = 0.05
 UNBOUNDED = 2.0**40  # bytes: one row block per image (the results do not depend on it)
 
@@ -55,33 +60,47 @@ def label(s: EnergySettings) -> str:
 def score_image(render: RenderResult, ref: np.ndarray, denoiser: Denoiser,
                 settings: list[EnergySettings]) -> dict[str, float]:
     """PSNR of the render, the uncorrected output, each corrected one and OIDN; mean radiance kept."""
-    assert render.variance is not None and denoiser.energy is None
+    assert denoiser.energy is None
     out = denoiser.denoise_render(render).image
     exposure = exposure_scale(render.rgb)
     oidn = oidn_denoise(render.rgb)[0]
     row = {"noisy": psnr(render.rgb, ref), NONE: psnr(out, ref)}
     for s in settings:
         fixed = out.copy()
-        correct_in_place(render.rgb, fixed, render.variance, UNBOUNDED, exposure, s)
+        correct_in_place(render.rgb, fixed, UNBOUNDED, exposure, s)
         row[label(s)] = psnr(fixed, ref)
         if s == EnergySettings():
             row["kept default"] = float(fixed.mean() / ref.mean())
+    if render.variance is not None:
+        row[HALVES] = psnr(halves_corrected(render, out, exposure), ref)
     row["oidn"] = psnr(oidn, ref)
     row["kept none"], row["kept oidn"] = float(out.mean() / ref.mean()), float(oidn.mean() / ref.mean())
     return row
 
 
+def halves_corrected(render: RenderResult, out: np.ndarray, exposure: float) -> np.ndarray:
+    """``out`` corrected with the default settings, the halves' variance (times exposure^2, clamped
+    to clamp^2, non-finite as clamp^2) summed per block in place of each block's sample variance."""
+    s = EnergySettings()
+    noisy_sums, out_sums, _, counts = block_statistics(render.rgb, out, exposure, s.clamp, s.block, UNBOUNDED)
+    var = np.asarray(render.variance, np.float64) * exposure * exposure
+    var = np.clip(np.where(np.isfinite(var), var, s.clamp ** 2), 0.0, s.clamp ** 2)
+    fixed = out.copy()
+    apply_ratio(fixed, ratio_map(noisy_sums, out_sums, block_sums(var, s.block), counts, s), s.block, UNBOUNDED)
+    return fixed
+
+
 def validation_rows(folders: list[Path], denoiser: Denoiser,
                     settings: list[EnergySettings]) -> Iterator[tuple[int, dict[str, float]]]:
-    images = [im for im in val_images(folders, None, noise=True) if im.variance is not None]
+    images = val_images(folders, None, noise=True)
     for im in tqdm(images, desc="validation", unit="image"):
         render = RenderResult(rgb=im.noisy, spp=im.spp, variance=im.variance)
         yield im.spp, score_image(render, im.ref, denoiser, settings)
 
 
 def eval_rows(spps: list[int], denoiser: Denoiser, settings: list[EnergySettings],
-              eval_dir: Path = EVAL_DIR) -> Iterator[tuple[int, dict[str, float]]]:
-    for spp, render, ref in scored_renders(None, spps, eval_dir):
+              eval_dir: Path = EVAL_DIR, halves: bool = True) -> Iterator[tuple[int, dict[str, float]]]:
+    for spp, render, ref in scored_renders(None, spps, eval_dir, halves):
         yield spp, score_image(render, ref, denoiser, settings)
 
 
@@ -103,14 +122,14 @@ def summarize(rows: Iterator[tuple[int, dict[str, float]]], labels: list[str]) -
 
 
 def markdown(summary: dict[str, Any], title: str, labels: list[str]) -> list[str]:
-    columns = ["noisy", NONE, *labels, "oidn"]
+    columns = ["noisy", NONE, *labels, HALVES, "oidn"]
     lines = [f"**{title}**: mean PSNR dB; under each setting, images worse than `none` by > {WORSE_DB} dB "
              "/ the worst change", "",
              "| spp | images | " + " | ".join(columns) + " | kept: none / default / OIDN |",
              "|---:|---:|" + "---:|" * (len(columns) + 1)]
     for spp, row in summary["per_spp"].items():
-        cells = [f"{row[c]:.2f}" + (f" ({row['worse ' + c]} / {row['worst ' + c]:+.2f})" if c in labels else "")
-                 for c in columns]
+        cells = [("-" if c not in row else f"{row[c]:.2f}")
+                 + (f" ({row['worse ' + c]} / {row['worst ' + c]:+.2f})" if c in labels else "") for c in columns]
         kept = " / ".join(f"{row['kept ' + k]:.3f}" for k in ("none", "default", "oidn"))
         lines.append(f"| {spp} | {row['images']} | " + " | ".join(cells) + f" | {kept} |")
     return lines + [""]
@@ -119,9 +138,11 @@ def markdown(summary: dict[str, Any], title: str, labels: list[str]) -> list[str
 def report(result: dict[str, Any], labels: list[str]) -> str:
     lines = [f"Source: `{result['command']}`; {result['date']}. Model {result['model']} with the noise guard; "
              f"`none`: no correction; T: clamp, r: window radius in 8-px blocks, k: significance; the default is "
-             f"{label(EnergySettings())}. kept: mean radiance / the reference's.", ""]
+             f"{label(EnergySettings())}; `halves`: the default with the halves' variance. kept: mean radiance / the "
+             "reference's.", ""]
     for key, title in (("validation", "validation (held-out procedural scenes; the tuning set)"),
-                       ("eval", f"eval scenes (ceiling >= {CEILING_DB:g} dB, seed {SEED})")):
+                       ("eval", f"eval scenes (ceiling >= {CEILING_DB:g} dB, seed {SEED})"),
+                       ("one-piece", "eval scenes rendered in one piece (no halves, no guard)")):
         if key in result:
             lines += markdown(result[key], title, labels)
     if "seconds_720p" in result:
@@ -130,7 +151,7 @@ def report(result: dict[str, Any], labels: list[str]) -> str:
 
 
 def seconds_720p(repeats: int = 5) -> float:
-    """Median seconds of the default correction of a 1280x720 image (random radiance and variance)."""
+    """Median seconds of the default correction of a 1280x720 image (random radiance)."""
     import torch
 
     from imaging.blocks import pass_workers
@@ -138,13 +159,12 @@ def seconds_720p(repeats: int = 5) -> float:
 
     rng = np.random.default_rng(0)
     noisy = rng.gamma(1.0, 0.5, (720, 1280, 3)).astype(np.float32)
-    variance = (noisy * 0.1).astype(np.float32)
     workers = pass_workers(720 * 1280, torch.get_num_threads())
     times = []
     for _ in range(repeats):
         out = noisy * np.float32(0.9)
         start = time.perf_counter()
-        correct_in_place(noisy, out, variance, DEFAULT_MAX_MEMORY_MB * 2**20, workers=workers)
+        correct_in_place(noisy, out, DEFAULT_MAX_MEMORY_MB * 2**20, workers=workers)
         times.append(time.perf_counter() - start)
     return float(np.median(times))
 
@@ -165,6 +185,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--settings", default="16:2:4,4:2:4,8:2:4,64:2:4,16:1:4,16:3:4,16:2:0,16:2:1,16:2:16",
                    help="comma-separated CLAMP:RADIUS:K combinations")
     p.add_argument("--spp", type=int_list, default=(4, 16, 128), help="eval scenes' spp")
+    p.add_argument("--one-piece-spp", type=int_list, default=(1, 4, 128, 1024),
+                   help="spp of the eval scenes rendered in one piece")
     p.add_argument("--eval-dir", type=Path, default=EVAL_DIR)
     argv = sys.argv[1:] if argv is None else argv
     args = p.parse_args(argv)
@@ -183,6 +205,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.data:
             result["validation"] = summarize(validation_rows(args.data, denoiser, settings), labels)
         result["eval"] = summarize(eval_rows(list(args.spp), denoiser, settings, args.eval_dir), labels)
+        result["one-piece"] = summarize(eval_rows(list(args.one_piece_spp), denoiser, settings, args.eval_dir,
+                                                  halves=False), labels)
         result["seconds_720p"] = seconds_720p()
     except COMMAND_ERRORS as exc:
         return p.fail(exc)

@@ -80,18 +80,19 @@ def eval_scenes(names: Sequence[str] | None = None, eval_dir: Path = EVAL_DIR) -
     return scenes
 
 
-def scored_renders(names: Sequence[str] | None, spps: Sequence[int],
-                   eval_dir: Path = EVAL_DIR) -> Iterator[tuple[int, RenderResult, np.ndarray]]:
+def scored_renders(names: Sequence[str] | None, spps: Sequence[int], eval_dir: Path = EVAL_DIR,
+                   halves: bool = True) -> Iterator[tuple[int, RenderResult, np.ndarray]]:
     """``(spp, render, reference)`` for every scored scene (ceiling >= :data:`CEILING_DB`) of
     ``names`` and every spp: rendered as ``render-and-denoise`` does (two halves, seed
-    :data:`SEED`), each scene loaded once, a progress bar over the scenes."""
+    :data:`SEED`; ``halves`` False: in one piece, as with ``--no-noise-guard``), each scene loaded
+    once, a progress bar over the scenes."""
     from tqdm import tqdm
 
     for scene in tqdm(eval_scenes(names, eval_dir), desc="eval scenes", unit="scene"):
         if scene.ceiling_db < CEILING_DB:
             continue
         ref = scene.reference()
-        case = scene.settings(resolution=(ref.shape[1], ref.shape[0]))
+        case = scene.settings(resolution=(ref.shape[1], ref.shape[0]), noise_guard=halves)
         loaded = case.load()
         for spp in spps:
             yield spp, render_input(loaded, spp, case), ref

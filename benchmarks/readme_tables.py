@@ -180,20 +180,23 @@ def energy(results: Results) -> list[str]:
     data = results.json("energy")
     labels = [f"T{s['clamp']:g} r{s['radius']} k{s['significance']:g}" for s in data["settings"]]
     rows = []
-    for key in ("validation", "eval"):
+    for key in ("validation", "eval", "one-piece"):
         for spp, row in data.get(key, {}).get("per_spp", {}).items():
             rows.append([key, spp, str(row["images"]), _f(row["none"]),
                          f"{_f(row[labels[0]])} ({row['worse ' + labels[0]]} / {row['worst ' + labels[0]]:+.2f})",
-                         *(_f(row[k]) for k in labels[1:]), _f(row["oidn"]),
+                         *(_f(row[k]) for k in labels[1:]), _f(row.get("halves")), _f(row["oidn"]),
                          " / ".join(_f(row["kept " + k], 3) for k in ("none", "default", "oidn"))])
     note = (f"Model `{data['model']}` through the noise guard as the default path; `none`: no correction; "
             f"T: clamp, r: window radius in 8-px blocks, k: significance; the default {labels[0]} "
-            "(in brackets: images worse than `none` by > 0.05 dB / the worst change). OIDN colour-only on the "
+            "(in brackets: images worse than `none` by > 0.05 dB / the worst change); halves: the default with "
+            "the variance of the render's two halves in place of each block's sample variance (renders of 2+ "
+            "spp). OIDN colour-only on the "
             "same images. kept: mean radiance / the reference's without the correction, with the default, "
             "OIDN. validation: held-out procedural scenes (the tuning set); eval: ../shared/eval-scenes, "
-            f"ceiling >= 40 dB, seed {data['seed']}.")
+            f"ceiling >= 40 dB, seed {data['seed']}; one-piece: the same scenes rendered in one piece (no halves, "
+            "no guard).")
     return [caption("python -m benchmarks.energy", "benchmarks/results/energy.json", data, note), "",
-            *_table(["set", "spp", "images", "none", *labels, "OIDN", "kept"], rows, right=1)]
+            *_table(["set", "spp", "images", "none", *labels, "halves", "OIDN", "kept"], rows, right=1)]
 
 
 # --- speed -----------------------------------------------------------------------------------------

@@ -23,8 +23,8 @@ PRECISION_HELP = ("float format of the network: bfloat16 halves its time on CPUs
                   "for the multi-scale nets where the CPU has it natively, else float32")
 FLIPS_HELP = ("average the network over 1, 2 or 4 mirrored copies of the image: 2x or 4x the "
               "network's time for about 0.1 or 0.2 dB (docs/speed.md)")
-ENERGY_HELP = ("leave the output's local means as the network made them (default, with the render's "
-               "variance: matched to the render's where they differ by more than its noise; docs/noise-guard.md)")
+ENERGY_HELP = ("leave the output's local means as the network made them (default: matched to the render's "
+               "where they differ by more than its noise; docs/noise-guard.md)")
 SKIP_HELP = ("leave the 64-px cells whose noise (transfer-space standard deviation from the halves) is "
              "below NOISE out of the network; they keep the render, as the noise guard would "
              "(benchmarks/skip.py measures time and change; default: the network everywhere)")

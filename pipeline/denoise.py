@@ -231,8 +231,8 @@ class Denoiser:
     bfloat16 for a multi-scale network on a CPU with native bfloat16, else float32; the training
     module is always float32). ``flips``: average the network over 1, 2 or 4 mirrored copies of
     each tile (:func:`model.infer.flip_average`): 2x or 4x the network's time for ~0.1 or ~0.2 dB
-    (docs/speed.md). ``energy``: with a variance, match the output's local means to the render's
-    after the guard (:mod:`pipeline.energy`; None: off).
+    (docs/speed.md). ``energy``: match the output's local means to the render's where they differ by
+    more than its noise, after the guard (:mod:`pipeline.energy`; None: off).
     """
 
     def __init__(self, checkpoint: str | Path | Sequence[str | Path] | None = None,
@@ -360,7 +360,9 @@ class Denoiser:
         render where the render's noise does not explain the change (:mod:`pipeline.noise_guard`).
         ``keep_network``: also return the network's output before that blend (``network``).
         ``spp``: the render's samples per pixel, where known: an ensemble runs only the members
-        trained on such renders (:meth:`active`; unknown: the members trained on every spp). None of the inputs is changed or copied whole.
+        trained on such renders (:meth:`active`; unknown: the members trained on every spp). The
+        output's local means are then matched to the render's (``energy``, :mod:`pipeline.energy`).
+        None of the inputs is changed or copied whole.
         """
         import torch
 
@@ -405,10 +407,10 @@ class Denoiser:
             guard_in_place(rgb, out, variance, weights, self.max_bytes, strength=strength, workers=workers)
             weight = float(weights.mean())
         factor = None
-        if variance is not None and self.energy is not None:
+        if self.energy is not None:
             exposure = exposure_scale(rgb, block_rows(width, PASS_BYTES_PER_PIXEL, self.max_bytes / workers,
                                                       -(-height // workers)), workers)
-            factor = correct_in_place(rgb, out, variance, self.max_bytes, exposure, self.energy, workers)
+            factor = correct_in_place(rgb, out, self.max_bytes, exposure, self.energy, workers)
         return DenoiseResult(out, nonfinite, negative, time.perf_counter() - start, count[0], weight,
                              None if weights is None else weights[:, :, 0], factor, network,
                              tuple(m.path.stem for m in members))

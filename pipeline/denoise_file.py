@@ -177,7 +177,8 @@ def denoise_file(cfg: DenoiseFileConfig) -> dict[str, Any]:
         "negative_values": result.negative,
         "noise_guard": None if variance is None else {
             "variance": image.variance_layer, "spp": spp, "strength": strength,
-            "mean_weight": result.guard_weight, "energy_factor": result.energy_factor}}
+            "mean_weight": result.guard_weight},
+        "energy": None if result.energy_factor is None else {"mean_factor": result.energy_factor}}
     if ref is not None:
         out["quality"] = {"noisy": all_metrics(image.rgb, ref), "denoised": all_metrics(result.image, ref)}
     return json_safe(out)

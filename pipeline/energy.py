@@ -11,14 +11,17 @@ Per channel, with ``a`` the render's and ``b`` the output's mean over a window o
 (``block`` x ``block`` pixel blocks, a (2r+1)^2 window of blocks), the output is multiplied by
 ``1 + w * (clip(a / b, 1/max_ratio, max_ratio) - 1)``, the ratio map interpolated bilinearly
 between block centres. ``w = d^2 / (d^2 + k * se^2)`` with ``d = a - b`` and ``se^2`` the
-variance of ``a`` (the window mean of the render's per-pixel variance over the window's pixel
-count, from its two halves): where the difference is within the render's own noise the output is
-left alone; where it is several standard errors off, matched. Values are clamped at ``clamp``
-(radiance after the network's exposure scale, :func:`model.infer.exposure_scale`; variance at
-its square) before averaging: one firefly of 1000 would otherwise make a whole window's mean.
-Without a variance there is no ``se`` to trust the render by, and nothing is changed.
+variance of ``a``: the window's pixel variance over its pixel count, the pixel variance taken from
+the render itself, each block's sample variance. That is the noise plus the signal's own variation
+within 8 px, an over-estimate of the noise, so the test errs towards leaving the output alone; it
+needs no second render (a 1-spp render, a file from elsewhere), and measured as good as the
+variance of the render's two halves where those exist (docs/noise-guard.md). Where the difference
+is within the render's own spread the output is left alone; where it is several standard errors
+off, matched. Values are clamped at ``clamp`` (radiance after the network's exposure scale,
+:func:`model.infer.exposure_scale`) before anything is summed: one firefly of 1000 would otherwise
+make a whole window's mean.
 
-``benchmarks/energy.py`` measured the settings on our held-out scenes (2-16 spp) and scores them
+``benchmarks/energy.py`` measured the settings on our held-out scenes (1-16 spp) and scores them
 on ../shared/eval-scenes (docs/noise-guard.md, "Energy").
 """
 from __future__ import annotations
@@ -29,10 +32,11 @@ import numpy as np
 
 from imaging.blocks import parallel_map, row_blocks
 from imaging.box_filter import box_sum_2d
+from model.transfer import HDR_MAX
 
-# Peak scratch bytes per pixel of a row block: a clamped float32 copy summed by :func:`_block_sums`
-# (12 + 1.5), or :func:`_apply_rows`' interpolated factors and their lower half (24): a bound with
-# headroom of what tests/test_energy.py measures with tracemalloc.
+# Peak scratch bytes per pixel of a row block: a clamped float32 copy summed by :func:`block_sums`,
+# then squared in place and summed again (12 + 1.5), or :func:`_apply_rows`' interpolated factors
+# and their lower half (24): a bound with headroom of what tests/test_energy.py measures.
 ENERGY_BYTES_PER_PIXEL = 32
 
 
@@ -60,7 +64,7 @@ class EnergySettings:
             raise ValueError(f"significance must be >= 0 and finite, got {self.significance}")
 
 
-def _scaled(x: np.ndarray, exposure: float, clamp: float) -> np.ndarray:
+def scaled(x: np.ndarray, exposure: float, clamp: float) -> np.ndarray:
     """float32 copy of radiance ``x`` times ``exposure``, clamped to [0, clamp] (NaN -> 0; clamped
     before scaling, so nothing overflows)."""
     out = np.array(x, dtype=np.float32)
@@ -70,18 +74,7 @@ def _scaled(x: np.ndarray, exposure: float, clamp: float) -> np.ndarray:
     return np.clip(out, 0.0, clamp, out=out)
 
 
-def _scaled_variance(v: np.ndarray, exposure: float, clamp: float) -> np.ndarray:
-    """float32 copy of variance ``v`` times ``exposure^2``, clamped to [0, clamp^2]; non-finite
-    (also where the product overflows) -> clamp^2: unknown, so as uncertain as a clamped value."""
-    out = np.array(v, dtype=np.float32)
-    with np.errstate(over="ignore", under="ignore", invalid="ignore"):
-        out *= np.float32(exposure)  # twice: exposure^2 itself may lie outside float32 (2^+-64)
-        out *= np.float32(exposure)
-    np.putmask(out, ~np.isfinite(out), clamp * clamp)
-    return np.clip(out, 0.0, clamp * clamp, out=out)
-
-
-def _block_sums(x: np.ndarray, block: int) -> np.ndarray:
+def block_sums(x: np.ndarray, block: int) -> np.ndarray:
     """(ceil(H/block) x ceil(W/block) x C) float64 sums of an HxWxC float32 array's blocks (the
     last row and column of blocks may be partial): down the rows in float32 (``block`` values, a
     1/block-size result), then across in float64; no copy of the input."""
@@ -89,27 +82,34 @@ def _block_sums(x: np.ndarray, block: int) -> np.ndarray:
     return np.add.reduceat(rows.astype(np.float64), np.arange(0, x.shape[1], block), axis=1)
 
 
-def block_statistics(noisy: np.ndarray, denoised: np.ndarray, variance: np.ndarray, exposure: float,
-                     clamp: float, block: int, max_bytes: float, workers: int = 1) -> tuple[np.ndarray, ...]:
-    """Per block of ``block`` x ``block`` pixels, at the network's ``exposure``: sums of the render
-    and of the output (:func:`_scaled`) and of the variance (:func:`_scaled_variance`), each
-    hxwx3 float64, and the blocks' pixel counts (hxwx1). Row blocks of whole pixel blocks within
-    ``max_bytes``."""
+def block_statistics(noisy: np.ndarray, denoised: np.ndarray, exposure: float, clamp: float, block: int,
+                     max_bytes: float, workers: int = 1) -> tuple[np.ndarray, ...]:
+    """Per block of ``block`` x ``block`` pixels, at the network's ``exposure`` (:func:`scaled`):
+    sums of the render and of the output, the render's sample variance (unbiased) times the block's
+    pixel count (the sum of its pixels' variances, were they equal), each hxwx3 float64, and the
+    pixel counts (hxwx1). Row blocks of whole pixel blocks within ``max_bytes``."""
     height, width = denoised.shape[:2]
     rows = max(block, (next(row_blocks(height, width, ENERGY_BYTES_PER_PIXEL, max_bytes / max(1, workers),
                                        workers)).stop // block) * block)
 
     def sums(y: int) -> tuple[np.ndarray, ...]:
         part = slice(y, min(height, y + rows))
-        return (_block_sums(_scaled(noisy[part], exposure, clamp), block),
-                _block_sums(_scaled(denoised[part], exposure, clamp), block),
-                _block_sums(_scaled_variance(variance[part], exposure, clamp), block))
+        x = scaled(noisy[part], exposure, clamp)
+        plain = block_sums(x, block)
+        x *= x
+        return plain, block_sums(x, block), block_sums(scaled(denoised[part], exposure, clamp), block)
 
     parts = parallel_map(sums, range(0, height, rows), workers)
-    stats = [np.concatenate([p[i] for p in parts], axis=0) for i in range(3)]
-    counts = np.outer(np.minimum(block, height - np.arange(0, height, block)),
-                      np.minimum(block, width - np.arange(0, width, block))).astype(np.float64)[..., None]
-    return (*stats, counts)
+    noisy_sums, square_sums, out_sums = (np.concatenate([p[i] for p in parts], axis=0) for i in range(3))
+    counts = _block_counts(height, width, block)[..., None]
+    var_sums = np.maximum(square_sums - noisy_sums * noisy_sums / counts, 0.0) * counts / np.maximum(counts - 1, 1)
+    return noisy_sums, out_sums, var_sums, counts
+
+
+def _block_counts(height: int, width: int, block: int) -> np.ndarray:
+    """hxw float64: the pixels in each block (the last row and column of blocks may be partial)."""
+    return np.outer(np.minimum(block, height - np.arange(0, height, block)),
+                    np.minimum(block, width - np.arange(0, width, block))).astype(np.float64)
 
 
 def _window_sums(x: np.ndarray, radius: int) -> np.ndarray:
@@ -148,8 +148,9 @@ def _across(ratio: np.ndarray, width: int, block: int) -> np.ndarray:
     return out
 
 
-def _apply_rows(denoised: np.ndarray, across: np.ndarray, rows: slice, block: int) -> None:
-    """Multiply ``denoised[rows]`` in place by :func:`_across`'s map interpolated down to its rows."""
+def _apply_rows(denoised: np.ndarray, across: np.ndarray, rows: slice, block: int, upper: float) -> None:
+    """Multiply ``denoised[rows]`` in place by :func:`_across`'s map interpolated down to its rows,
+    capped at ``upper``."""
     y0, y1, fy = (a[rows] for a in _interpolation(denoised.shape[0], across.shape[0], block))
     factor = across[y0]
     factor *= (1.0 - fy)[:, None, None]
@@ -157,33 +158,41 @@ def _apply_rows(denoised: np.ndarray, across: np.ndarray, rows: slice, block: in
     lower *= fy[:, None, None]
     factor += lower
     del lower
-    denoised[rows] *= factor
+    part = denoised[rows]
+    part *= factor
+    np.minimum(part, np.float32(upper), out=part)
 
 
-def correct_in_place(noisy: np.ndarray, denoised: np.ndarray, variance: np.ndarray, max_bytes: float,
-                     exposure: float = 1.0, settings: EnergySettings = EnergySettings(),
-                     workers: int = 1) -> float:
+def correct_in_place(noisy: np.ndarray, denoised: np.ndarray, max_bytes: float, exposure: float = 1.0,
+                     settings: EnergySettings = EnergySettings(), workers: int = 1) -> float:
     """Match ``denoised``'s local means to ``noisy``'s as the module describes, in place.
 
-    ``noisy``: HxWx3 render (any float dtype), ``variance``: its HxWx3 per-pixel variance (two
-    halves); ``denoised``: HxWx3 float32 >= 0, changed in place (stays >= 0 and finite);
-    ``exposure``: the factor the network scaled the radiance by (``clamp`` applies after it).
+    ``noisy``: HxWx3 render (any float dtype); ``denoised``: HxWx3 float32 >= 0, changed in place
+    (stays >= 0, finite and at most ``HDR_MAX / exposure``, the chain's own bound); ``exposure``: the
+    factor the network scaled the radiance by (``clamp`` applies after it).
     Scratch memory: row blocks within ``max_bytes`` (``workers`` of them at a time on threads)
     plus the block maps (about 1/block^2 of the image each). Returns the mean factor applied
     (pixel-weighted over the three channels; 1: nothing changed).
     """
-    if not noisy.shape == denoised.shape == variance.shape or denoised.ndim != 3 or denoised.shape[2] != 3:
-        raise ValueError(f"shapes differ or are not HxWx3: noisy {noisy.shape}, denoised {denoised.shape}, "
-                         f"variance {variance.shape}")
+    if noisy.shape != denoised.shape or denoised.ndim != 3 or denoised.shape[2] != 3:
+        raise ValueError(f"shapes differ or are not HxWx3: noisy {noisy.shape}, denoised {denoised.shape}")
     if not (exposure > 0 and np.isfinite(exposure)):
         raise ValueError(f"exposure must be positive and finite, got {exposure}")
     if denoised.size == 0:
         return 1.0
-    noisy_sums, out_sums, var_sums, counts = block_statistics(noisy, denoised, variance, exposure, settings.clamp,
-                                                              settings.block, max_bytes, workers)
-    ratio = ratio_map(noisy_sums, out_sums, var_sums, counts, settings)
+    ratio = ratio_map(*block_statistics(noisy, denoised, exposure, settings.clamp, settings.block, max_bytes, workers),
+                      settings)
+    return apply_ratio(denoised, ratio, settings.block, max_bytes, HDR_MAX / exposure, workers)
+
+
+def apply_ratio(denoised: np.ndarray, ratio: np.ndarray, block: int, max_bytes: float, upper: float = HDR_MAX,
+                workers: int = 1) -> float:
+    """Multiply ``denoised`` in place by the block map ``ratio`` interpolated bilinearly between block
+    centres, capped at ``upper`` (the chain's bound, ``HDR_MAX`` over the exposure: float16 files keep
+    every value), in row blocks within ``max_bytes``; returns the mean factor (pixel-weighted, over
+    the channels)."""
     height, width = denoised.shape[:2]
-    across = _across(ratio, width, settings.block)
-    parallel_map(lambda rows: _apply_rows(denoised, across, rows, settings.block),
+    across = _across(ratio, width, block)
+    parallel_map(lambda rows: _apply_rows(denoised, across, rows, block, upper),
                  row_blocks(height, width, ENERGY_BYTES_PER_PIXEL, max_bytes / max(1, workers), workers), workers)
-    return float((ratio * counts).sum() / (3.0 * counts.sum()))
+    return float(ratio.mean(axis=2).ravel() @ _block_counts(height, width, block).ravel() / (height * width))

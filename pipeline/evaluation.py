@@ -46,8 +46,8 @@ class RenderSettings:
     output as it is); ``skip_below``: with the halves, leave the parts whose noise is below this out
     of the network (:class:`pipeline.denoise.Denoiser`; None: run it everywhere); ``precision``: the
     denoisers' float format (:mod:`model.precision`); ``flips``: test-time flips of the networks
-    (:mod:`model.flips`); ``energy``: with the halves, match the output's local means to the
-    render's (:mod:`pipeline.energy`); the reference is an EXR file or a render at ``reference_spp`` (another seed)."""
+    (:mod:`model.flips`); ``energy``: match the output's local means to the render's
+    (:mod:`pipeline.energy`); the reference is an EXR file or a render at ``reference_spp`` (another seed)."""
 
     scene: str
     resolution: tuple[int, int] | None = None

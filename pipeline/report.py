@@ -250,8 +250,8 @@ def _run_section(page: Page, metrics: dict[str, Any]) -> None:
                 ["noise guard", "off (one-piece render)" if not guard else
                  f"mean weight {guard['mean_weight']:.3f}, strength {guard['strength']:g}, "
                  f"window {2 * guard['radius'] + 1}x{2 * guard['radius'] + 1}"],
-                ["energy correction", "off" if not guard or guard.get("energy_factor") is None else
-                 f"mean factor {guard['energy_factor']:.3f} (1: unchanged)"]]
+                ["energy correction", "off" if not metrics.get("energy") else
+                 f"mean factor {metrics['energy']['mean_factor']:.3f} (1: unchanged)"]]
     if metrics.get("budget"):
         b = metrics["budget"]
         settings.append(["time budget", f"{b['budget_s']:g} s: {b['model']} at {b['spp']} spp, "

@@ -209,9 +209,9 @@ def _metrics(run: _Run) -> dict[str, Any]:
         "render_memory": {**run.render_memory.to_dict(), "budget_mb": cfg.max_memory_mb, "crops": noisy.crops},
     }
     metrics["noise_guard"] = ({"radius": DEFAULT_RADIUS, "pivot_spp": DEFAULT_PIVOT_SPP,
-                               "strength": strength_for(run.spp), "mean_weight": result.guard_weight,
-                               "energy_factor": result.energy_factor}
+                               "strength": strength_for(run.spp), "mean_weight": result.guard_weight}
                               if result.guard_weight is not None else None)
+    metrics["energy"] = None if result.energy_factor is None else {"mean_factor": result.energy_factor}
     if run.plan:
         metrics["budget"] = run.plan.to_dict()
     if run.reference is not None:
@@ -250,8 +250,9 @@ def summary_lines(metrics: dict[str, Any]) -> list[str]:
     if guarded:
         lines.append(f"noise guard: mean weight of the denoiser's output {guarded['mean_weight']:.3f} "
                      "(1: unchanged)")
-        if guarded.get("energy_factor") is not None:
-            lines.append(f"energy correction: mean factor {guarded['energy_factor']:.3f} (1: unchanged)")
+    energy = metrics.get("energy")
+    if energy:
+        lines.append(f"energy correction: mean factor {energy['mean_factor']:.3f} (1: unchanged)")
     budget = metrics.get("budget")
     if budget:
         lines.append(f"time budget {budget['budget_s']:g} s: chose {budget['model']} at {budget['spp']} spp "

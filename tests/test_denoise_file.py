@@ -141,10 +141,10 @@ def test_halves_command(tmp_path: Path, rng: np.random.Generator, ckpt: Path, de
     assert printed["noise_guard"]["variance"] == "halves" and printed["noise_guard"]["spp"] == 16
     expected = denoiser.denoise_array((a + b) / 2, variance=(a - b) ** 2 / 4, strength=strength_for(16))
     np.testing.assert_allclose(read_exr(tmp_path / "o.exr").rgb, expected.image, rtol=1e-5, atol=1e-6)
-    assert printed["noise_guard"]["energy_factor"] == pytest.approx(expected.energy_factor, rel=1e-6)
+    assert printed["energy"]["mean_factor"] == pytest.approx(expected.energy_factor, rel=1e-6)
     printed = run(capsys, "--halves", str(tmp_path / "a.exr"), str(tmp_path / "b.exr"),
                   str(tmp_path / "o1.exr"), "--model", str(ckpt), "--no-energy")
-    assert printed["noise_guard"]["energy_factor"] is None and printed["noise_guard"]["mean_weight"] is not None
+    assert printed["energy"] is None and printed["noise_guard"]["mean_weight"] is not None
     write_exr(tmp_path / "small.exr", a[:8])
     assert denoise_main(["--halves", str(tmp_path / "a.exr"), str(tmp_path / "small.exr"),
                          str(tmp_path / "o2.exr"), "--model", str(ckpt)]) == 1

@@ -92,11 +92,11 @@ def test_an_ensemble_runs_its_low_spp_member_only_at_low_spp(tmp_path: Path, ckp
 def test_noise_guard_on_by_default_and_off_on_request(tmp_path: Path, demo_run: Path, ckpt: Path) -> None:
     guarded = json.loads((demo_run / "metrics.json").read_text())["noise_guard"]
     assert 0.0 <= guarded["mean_weight"] <= 1.0 and guarded["strength"] >= 1.0
-    assert 0.5 < guarded["energy_factor"] < 1.5
+    assert 0.5 < json.loads((demo_run / "metrics.json").read_text())["energy"]["mean_factor"] < 1.5
     unmatched = tmp_path / "unmatched"
     assert main([str(DEMO), "--spp", "4", "--res", "32", "24", "--model", str(ckpt), "--quiet",
                  "--no-energy", "--no-compare", "--out", str(unmatched)]) == 0
-    assert json.loads((unmatched / "metrics.json").read_text())["noise_guard"]["energy_factor"] is None
+    assert json.loads((unmatched / "metrics.json").read_text())["energy"] is None
     assert json.loads((unmatched / "config.json").read_text())["render"]["energy"] is False
     out = tmp_path / "plain"
     assert main([str(DEMO), "--spp", "4", "--res", "32", "24", "--model", str(ckpt), "--quiet",
