@@ -42,7 +42,7 @@ from benchmarks.validation import val_images
 from imaging.metrics import psnr
 from imaging.render import RenderResult
 from imaging.usage import COMMAND_ERRORS, OneLineParser, int_list
-from model.infer import exposure_scale
+from model.infer import image_exposure
 from pipeline.denoise import DEFAULT_MODEL, Denoiser
 from pipeline.energy import EnergySettings, apply_ratio, block_statistics, block_sums, correct_in_place, ratio_map
 from pipeline.oidn import oidn_denoise
@@ -62,7 +62,7 @@ def score_image(render: RenderResult, ref: np.ndarray, denoiser: Denoiser,
     """PSNR of the render, the uncorrected output, each corrected one and OIDN; mean radiance kept."""
     assert denoiser.energy is None
     out = denoiser.denoise_render(render).image
-    exposure = exposure_scale(render.rgb)
+    exposure = image_exposure(render.rgb)
     oidn = oidn_denoise(render.rgb)[0]
     row = {"noisy": psnr(render.rgb, ref), NONE: psnr(out, ref)}
     for s in settings:

@@ -177,8 +177,11 @@ def noise_guard(results: Results) -> list[str]:
 def energy(results: Results) -> list[str]:
     """Mean PSNR without the energy correction, with each setting tried (the default first) and
     OIDN, per set and spp; the default's images made worse and worst change; radiance kept."""
+    from benchmarks.energy import label  # the benchmark's own column names
+    from pipeline.energy import EnergySettings
+
     data = results.json("energy")
-    labels = [f"T{s['clamp']:g} r{s['radius']} k{s['significance']:g}" for s in data["settings"]]
+    labels = [label(EnergySettings(**s)) for s in data["settings"]]
     rows = []
     for key in ("validation", "eval", "one-piece"):
         for spp, row in data.get(key, {}).get("per_spp", {}).items():

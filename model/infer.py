@@ -209,10 +209,20 @@ def _aux_window(aux: Aux, t: Tile) -> torch.Tensor:
     return torch.from_numpy(np.nan_to_num(window, nan=0.0, posinf=0.0, neginf=0.0))
 
 
+def image_exposure(color: np.ndarray, max_bytes: float = DEFAULT_PASS_BYTES) -> float:
+    """:func:`exposure_scale` of an HxWx3 image as :func:`denoise_image` computes it: blocks of at
+    most 256 rows within ``max_bytes``, on the numpy passes' threads."""
+    height, width = color.shape[:2]
+    workers = pass_workers(height * width, torch.get_num_threads())
+    blocks = workers * -(-height // (256 * workers))  # blocks of <= 256 rows, a multiple of workers
+    return exposure_scale(color, block_rows(width, PASS_BYTES_PER_PIXEL, max_bytes / workers,
+                                            -(-height // blocks)), workers)
+
+
 def denoise_image(model: nn.Module, color: np.ndarray, aux: Aux = None,
                   core: Core = 256, progress: Callable[[int, int], None] | None = None,
                   variance: np.ndarray | None = None, skip_below: float | None = None,
-                  max_bytes: float = DEFAULT_PASS_BYTES, flips: int = 1) -> np.ndarray:
+                  max_bytes: float = DEFAULT_PASS_BYTES, flips: int = 1, exposure: float | None = None) -> np.ndarray:
     """Denoise HxWx3 linear radiance -> HxWx3 float32 linear radiance >= 0 (at most HDR_MAX divided
     by :func:`exposure_scale`, i.e. HDR_MAX unless the image is unusually bright).
 
@@ -227,7 +237,9 @@ def denoise_image(model: nn.Module, color: np.ndarray, aux: Aux = None,
     bound of the passes over the whole image (exposure, the skip test, copying skipped parts);
     the result does not depend on it either. ``flips``: average the network over 1, 2 or 4
     mirrored copies of each window (:func:`flip_average`; more time, a little more accuracy,
-    docs/speed.md). The model runs in eval mode; its previous mode is restored.
+    docs/speed.md). ``exposure``: :func:`image_exposure` of ``color`` when the caller has it
+    (several models on one image), else computed here. The model runs in eval mode; its previous
+    mode is restored.
     """
     config = model.config
     _check_inputs(config, color, aux, variance)
@@ -236,10 +248,7 @@ def denoise_image(model: nn.Module, color: np.ndarray, aux: Aux = None,
         raise ValueError("test-time flips need a model without albedo/normal inputs (flips 1 here)")
     transfer = get_transfer(config.transfer)
     height, width = color.shape[:2]
-    workers = pass_workers(height * width, torch.get_num_threads())  # threads of the numpy passes
-    blocks = workers * -(-height // (256 * workers))  # blocks of <= 256 rows, a multiple of workers
-    scale = exposure_scale(color, block_rows(width, PASS_BYTES_PER_PIXEL, max_bytes / workers,
-                                             -(-height // blocks)), workers)
+    scale = image_exposure(color, max_bytes) if exposure is None else exposure
     align = alignment(config)
     radius = min(BOUND_RADIUS, receptive_radius(config))  # within the margin: tiles see the whole window
     region = None

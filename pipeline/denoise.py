@@ -366,7 +366,7 @@ class Denoiser:
         """
         import torch
 
-        from model.infer import PASS_BYTES_PER_PIXEL, denoise_image, exposure_scale
+        from model.infer import denoise_image, image_exposure
 
         rgb = np.asarray(rgb)
         if rgb.ndim != 3 or rgb.shape[2] != 3 or min(rgb.shape[:2]) < 1:
@@ -387,12 +387,13 @@ class Denoiser:
         if variance is not None and np.shape(variance) != rgb.shape:
             raise DenoiserError(f"variance shape {np.shape(variance)} differs from image {rgb.shape}")
         count = [0]
+        exposure = image_exposure(rgb, self.max_bytes)  # once for every member and the energy correction
 
         def run(member: Network) -> np.ndarray:
             return denoise_image(member.net, rgb, aux, self.cores(height, width, member),
                                  progress=lambda n, total: count.__setitem__(0, count[0] + (n == total) * total),
                                  variance=variance, skip_below=self.skip_below, max_bytes=self.max_bytes,
-                                 flips=self.flips)
+                                 flips=self.flips, exposure=exposure)
 
         members = self.active(spp)
         out = run(members[0])
@@ -408,8 +409,6 @@ class Denoiser:
             weight = float(weights.mean())
         factor = None
         if self.energy is not None:
-            exposure = exposure_scale(rgb, block_rows(width, PASS_BYTES_PER_PIXEL, self.max_bytes / workers,
-                                                      -(-height // workers)), workers)
             factor = correct_in_place(rgb, out, self.max_bytes, exposure, self.energy, workers)
         return DenoiseResult(out, nonfinite, negative, time.perf_counter() - start, count[0], weight,
                              None if weights is None else weights[:, :, 0], factor, network,

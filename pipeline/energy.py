@@ -30,7 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from imaging.blocks import parallel_map, row_blocks
+from imaging.blocks import block_rows, parallel_map, row_blocks
 from imaging.box_filter import box_sum_2d
 from model.transfer import HDR_MAX
 
@@ -89,8 +89,9 @@ def block_statistics(noisy: np.ndarray, denoised: np.ndarray, exposure: float, c
     pixel count (the sum of its pixels' variances, were they equal), each hxwx3 float64, and the
     pixel counts (hxwx1). Row blocks of whole pixel blocks within ``max_bytes``."""
     height, width = denoised.shape[:2]
-    rows = max(block, (next(row_blocks(height, width, ENERGY_BYTES_PER_PIXEL, max_bytes / max(1, workers),
-                                       workers)).stop // block) * block)
+    workers = max(1, workers)
+    rows = max(block, block_rows(width, ENERGY_BYTES_PER_PIXEL, max_bytes / workers, -(-height // workers))
+               // block * block)  # whole pixel blocks
 
     def sums(y: int) -> tuple[np.ndarray, ...]:
         part = slice(y, min(height, y + rows))

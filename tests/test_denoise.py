@@ -12,7 +12,7 @@ from imaging.errors import DenoiserError
 from model.architectures import build_model
 from model.checkpoint import save_checkpoint
 from model.config import ModelConfig
-from model.infer import exposure_scale
+from model.infer import image_exposure
 from pipeline.denoise import Denoiser, count_invalid
 from pipeline.energy import correct_in_place
 from pipeline.noise_guard import blend_weight, clean_render, guard
@@ -94,14 +94,14 @@ def test_guard_per_tile_is_the_whole_image_guard(ckpt: Path, max_memory_mb: floa
 @pytest.mark.parametrize("with_variance", [True, False])
 def test_energy_correction_follows_the_guard(ckpt: Path, with_variance: bool) -> None:
     """With or without a variance (guard or none), the output is the uncorrected one matched by
-    pipeline.energy at the image's exposure, bit for bit; energy=None leaves it alone."""
+    pipeline.energy at the exposure the network used, bit for bit; energy=None leaves it alone."""
     img, variance = _with_noise(61, 47, seed=6)
     img *= np.linspace(0.5, 1.5, 47, dtype=np.float32)[None, :, None]
     variance = variance if with_variance else None
     plain = Denoiser(ckpt, energy=None).denoise_array(img, variance=variance, strength=3.0)
     corrected = Denoiser(ckpt).denoise_array(img, variance=variance, strength=3.0)
     expected = plain.image.copy()
-    factor = correct_in_place(img, expected, 2**30, exposure_scale(img))
+    factor = correct_in_place(img, expected, 2**30, image_exposure(img))
     assert np.array_equal(corrected.image, expected)
     assert corrected.energy_factor == factor and plain.energy_factor is None
 

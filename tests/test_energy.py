@@ -1,12 +1,11 @@
 """The energy correction: analytic cases, its test against the render's own spread, clamps, exposure, memory."""
 from __future__ import annotations
 
-import tracemalloc
-
 import numpy as np
 import pytest
 
 from pipeline.energy import ENERGY_BYTES_PER_PIXEL, EnergySettings, correct_in_place
+from tests.test_noise_guard import _traced_peak
 
 BIG = 2**30  # a memory bound that never splits an image of these tests
 
@@ -111,18 +110,6 @@ def test_a_biased_estimate_moves_toward_the_truth() -> None:
     before, after = np.abs(denoised - truth).mean(), np.abs(out - truth).mean()
     assert after < 0.3 * before
     assert 1.1 < factor < 1.25  # 1 / 0.85 = 1.18
-
-
-def _traced_peak(fn) -> int:
-    """Peak bytes numpy allocated while ``fn`` ran (tracemalloc)."""
-    tracemalloc.start()
-    try:
-        before = tracemalloc.get_traced_memory()[0]
-        tracemalloc.reset_peak()
-        fn()
-        return tracemalloc.get_traced_memory()[1] - before
-    finally:
-        tracemalloc.stop()
 
 
 @pytest.mark.parametrize("shape", [(64, 64), (300, 300), (100, 37), (1, 500), (500, 3)])
