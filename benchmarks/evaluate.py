@@ -39,10 +39,12 @@ from imaging.usage import COMMAND_ERRORS, OneLineParser, int_list, name_list
 from model.flips import FLIPS
 from model.precision import PRECISIONS
 from pipeline.denoise import Denoiser
+from pipeline.energy import EnergySettings
 from pipeline.evaluation import BARE, OIDN, evaluate
 from pipeline.viewer import Page, Table, ViewerRow, ViewerSet, flip_map
 
 METRICS = ("psnr", "relmse", "flip")
+ENERGY_CHOICES = ("on", "off")  # --energy
 WHO = ("noisy", "ours", "ours_bare", "oidn")  # the columns of the per-scene table
 PATH = ("render in two halves at the seed; ours: each model as render-and-denoise applies it (noise "
         "input, noise guard, energy correction); bare: the same network output before the guard; OIDN 2.5 "
@@ -175,6 +177,9 @@ def build_parser() -> OneLineParser:
     p.add_argument("--flips", type=int_list, default=(1,),
                    help="test-time flips (model.flips: 1, 2, 4), each model with each; a model with "
                         "N > 1 flips is named MODEL+flipsN")
+    p.add_argument("--energy", type=name_list, default=("on",),
+                   help="the energy correction (pipeline.energy): on, off or on,off, each model with each; "
+                        "a model without it is named MODEL+no-energy")
     p.add_argument("--quiet", action="store_true", help="no progress bar and no table")
     return p
 
@@ -195,10 +200,14 @@ def main(argv: list[str] | None = None) -> int:
         bad_flips = [str(n) for n in args.flips if n not in FLIPS]
         if bad_flips:
             parser.error(f"--flips: {', '.join(bad_flips)} is not one of {', '.join(map(str, FLIPS))}")
-        denoisers = {(spec or "default") + ("" if i == 0 else f"@{prec}") + ("" if n == 1 else f"+flips{n}"):
-                     Denoiser(spec, precision=prec, flips=n)
+        bad_energy = [e for e in args.energy if e not in ENERGY_CHOICES]
+        if bad_energy:
+            parser.error(f"--energy: {', '.join(bad_energy)} is not one of {', '.join(ENERGY_CHOICES)}")
+        denoisers = {(spec or "default") + ("" if i == 0 else f"@{prec}") + ("" if n == 1 else f"+flips{n}")
+                     + ("" if e == "on" else "+no-energy"):
+                     Denoiser(spec, precision=prec, flips=n, energy=EnergySettings() if e == "on" else None)
                      for spec in (args.models or [args.model]) for i, prec in enumerate(args.precisions)
-                     for n in args.flips}
+                     for n in args.flips for e in args.energy}
         for d in denoisers.values():  # first calls pay one-off set-up: keep it out of the timings
             d.denoise_array(np.full((64, 64, 3), 0.5, dtype=np.float32))
         record = run_record("benchmarks.evaluate", argv)
@@ -223,6 +232,7 @@ def write_results(out: Path, rows: dict[str, Any], images: dict[str, dict[str, n
     first = next(iter(denoisers.values()))
     models = {name: {"path": str(d.path), "sha256": d.sha256, "config": d.config.to_dict(),
                      "step": d.meta.get("step"), "precision": d.precision, "flips": d.flips,
+                     "energy": d.energy is not None,
                      **d.ensemble_record()}
               for name, d in denoisers.items()}
     result = {**record, "path": PATH, "model": next(iter(models.values())), "models": models, "spp": spps,

@@ -38,6 +38,7 @@ _FLAGS = {  # argparse dest -> TrainConfig field
     "noise_dropout": "noise_dropout", "gradient_weight": "gradient_weight", "max_scenes": "max_scenes",
     "max_spp": "max_spp", "min_spp": "min_spp",
     "log_loss_eps": "log_loss_eps", "ms_ssim_weight": "ms_ssim_weight",
+    "loss_norm": "loss_norm", "loss_space": "loss_space",
 }
 _MODEL_FLAGS = ("arch", "transfer", "output", "aux_inputs", "noise_input", "noise_radius", "levels", "layers",
                 "growth", "init_features", "head")
@@ -98,6 +99,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--ms-ssim-weight", type=float,
                    help="share of 1 - MS-SSIM in the loss (0.84 with --gradient-weight 0: the L1 + MS-SSIM mix "
                         "of Zhao et al. and OIDN; default 0 = off, the paper's loss)")
+    p.add_argument("--loss-norm", choices=("l1", "l2"),
+                   help="per-value error of both loss terms: l1 (default, the paper's: each pixel's median) "
+                        "or l2 (squared: its mean, which PSNR rewards)")
+    p.add_argument("--loss-space", choices=("transfer", "display"),
+                   help="where the loss compares images: transfer (default, the network's space) or display "
+                        "(the metrics' tonemap, where PSNR is measured)")
     p.add_argument("--max-scenes", type=int, help="use only the datasets' scenes with index below this")
     p.add_argument("--max-spp", type=int,
                    help="train and validate on the renders of at most this many spp only (default: all)")

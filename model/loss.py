@@ -16,10 +16,17 @@ range 1; the PU curve is OIDN's choice of space too). SSIM uses an 11-px Gaussia
 without padding; a patch of side P gets as many scales (at most 5, halving each time) as keep the
 window inside it (28 px: 2, 64 px: 3, 128 px: 4), weighted by Wang's first weights renormalised.
 Zhao's mix is m = 0.84 with ``gradient_weight`` 0.
+
+``norm`` "l2" squares the differences of both terms instead of taking their absolute values: L1
+trains for each pixel's conditional median, L2 for its mean, which is what PSNR (a mean squared
+error) rewards; the two differ where the network cannot resolve a skewed, heavy-tailed signal.
+``to_space``, when given, maps both images before the differences (e.g. the metric's display
+tonemap of :meth:`model.transfer.TransferFunction.display`); MS-SSIM stays in transfer space.
 """
 from __future__ import annotations
 
 import math
+from typing import Callable
 
 import torch
 import torch.nn.functional as F
@@ -33,9 +40,13 @@ MS_SSIM_WEIGHTS = (0.0448, 0.2856, 0.3001, 0.2363, 0.1333)  # Wang et al., fines
 _SSIM_FLOOR = 1e-4  # contrast terms are clamped to this before the fractional powers (finite gradients)
 
 
-def _gradient_l1(diff: torch.Tensor, dims: tuple[int, ...]) -> torch.Tensor:
-    gx = (diff[..., :, 1:] - diff[..., :, :-1]).abs().mean(dims) if diff.shape[-1] > 1 else diff.new_zeros(())
-    gy = (diff[..., 1:, :] - diff[..., :-1, :]).abs().mean(dims) if diff.shape[-2] > 1 else diff.new_zeros(())
+NORMS = {"l1": torch.abs, "l2": torch.square}  # --loss-norm: per-value error of both terms
+
+
+def _gradient_l1(diff: torch.Tensor, dims: tuple[int, ...],
+                 error: Callable[[torch.Tensor], torch.Tensor] = torch.abs) -> torch.Tensor:
+    gx = error(diff[..., :, 1:] - diff[..., :, :-1]).mean(dims) if diff.shape[-1] > 1 else diff.new_zeros(())
+    gy = error(diff[..., 1:, :] - diff[..., :-1, :]).mean(dims) if diff.shape[-2] > 1 else diff.new_zeros(())
     return 0.5 * (gx + gy)
 
 
@@ -93,19 +104,28 @@ def gradient_l1(out: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
 
 
 def denoising_loss(out: torch.Tensor, ref: torch.Tensor, gradient_weight: float = GRADIENT_WEIGHT,
-                   log_eps: float = 0.0, ms_ssim_weight: float = 0.0) -> torch.Tensor:
+                   log_eps: float = 0.0, ms_ssim_weight: float = 0.0, norm: str = "l1",
+                   to_space: Callable[[torch.Tensor], torch.Tensor] | None = None) -> torch.Tensor:
     """Scalar loss ``(1 - g) * L1 + g * gradient L1`` (both in transfer space), float32; the
     paper's ``g = 0.1`` by default, ``g = 0`` is plain L1. ``ms_ssim_weight`` m > 0: that loss
     times ``1 - m`` plus ``m * (1 - MS-SSIM)`` (:func:`ms_ssim`). ``log_eps`` > 0: the mean over
-    the batch's patches (dim 0) of ``log(that patch's loss + log_eps)`` (module docstring)."""
+    the batch's patches (dim 0) of ``log(that patch's loss + log_eps)`` (module docstring).
+    ``norm`` "l2": squared instead of absolute differences in both terms; ``to_space``: a map of
+    both images (float32) before the differences (module docstring)."""
     if out.shape != ref.shape:
         raise ValueError(f"output shape {tuple(out.shape)} differs from reference shape {tuple(ref.shape)}")
-    diff = out.float() - ref.float()
+    if norm not in NORMS:
+        raise ValueError(f"unknown loss norm {norm!r} (known: {', '.join(NORMS)})")
+    error = NORMS[norm]
+    a, b = out.float(), ref.float()
+    if to_space is not None:
+        a, b = to_space(a), to_space(b)
+    diff = a - b
     per_patch = log_eps != 0 or ms_ssim_weight != 0
     dims = tuple(range(1, diff.dim())) if per_patch else tuple(range(diff.dim()))
-    loss = diff.abs().mean(dims)
+    loss = error(diff).mean(dims)
     if gradient_weight != 0:
-        loss = (1.0 - gradient_weight) * loss + gradient_weight * _gradient_l1(diff, dims)
+        loss = (1.0 - gradient_weight) * loss + gradient_weight * _gradient_l1(diff, dims, error)
     if ms_ssim_weight != 0:
         loss = (1.0 - ms_ssim_weight) * loss + ms_ssim_weight * (1.0 - ms_ssim(out, ref))
     if log_eps != 0:

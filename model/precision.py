@@ -10,7 +10,14 @@ where the CPU has it natively and for the multi-scale networks: on the eval scen
 benchmarks.evaluate --precisions float32,bfloat16``) the noise-input u-balanced checkpoint lost nothing
 (31.59 / 34.90 / 39.14 against 31.59 / 34.91 / 39.15 dB at 4 / 16 / 128 spp) but the flat
 ``fast`` lost 0.5 dB at 128 spp (40.86 against 41.36; its full-resolution features carry small
-corrections that bfloat16 rounds away). Its speed: ``benchmarks/inference.py`` (docs/speed.md).
+corrections that bfloat16 rounds away). That loss is the clean renders': a flat net that only runs
+on renders of at most :data:`FLAT_BF16_MAX_SPP` spp (an ensemble member limited so, ``MODEL:-8``, or a
+checkpoint trained on them) computes in bfloat16 under ``auto`` too, where the render's own noise is
+far above the rounding: the default with its flat low-spp member in bfloat16 scored 29.11 / 31.05 /
+32.95 / 34.83 dB at 1 / 2 / 4 / 8 spp against 29.10 / 31.04 / 32.94 / 34.83 in float32, at 0.55-0.6x
+the denoise time (``python -m benchmarks.evaluate --precisions auto,bfloat16 --spp 1,2,4,8,16``,
+2026-12-04; 16 spp, where `fast` runs in it too: 36.58 against 36.63). Its speed:
+``benchmarks/inference.py`` (docs/speed.md).
 """
 from __future__ import annotations
 
@@ -22,6 +29,7 @@ if TYPE_CHECKING:
 
 PRECISIONS = ("auto", "float32", "bfloat16")
 NATIVE_BF16_FLAGS = frozenset({"amx_bf16", "avx512_bf16"})
+FLAT_BF16_MAX_SPP = 8  # auto: a flat net limited to renders of at most this many spp computes in bfloat16
 
 
 def cpu_flags(cpuinfo: str | Path = "/proc/cpuinfo") -> frozenset[str]:
@@ -49,13 +57,16 @@ def check_precision(precision: str) -> str:
     return precision
 
 
-def compute_dtype(precision: str, multiscale: bool = True, cpuinfo: str | Path = "/proc/cpuinfo") -> torch.dtype:
+def compute_dtype(precision: str, multiscale: bool = True, cpuinfo: str | Path = "/proc/cpuinfo",
+                  max_spp: int = 0) -> torch.dtype:
     """The torch dtype of ``precision`` (one of :data:`PRECISIONS`) for a network that is
-    ``multiscale`` or flat (``auto`` keeps flat networks in float32); raises ValueError for an
-    unknown precision. (torch is imported here: the CLIs read :data:`PRECISIONS` before they
-    need torch.)"""
+    ``multiscale`` or flat and runs on renders of at most ``max_spp`` spp (0: any). ``auto`` keeps a
+    flat network in float32 unless ``max_spp`` is within :data:`FLAT_BF16_MAX_SPP`; raises
+    ValueError for an unknown precision. (torch is imported here: the CLIs read
+    :data:`PRECISIONS` before they need torch.)"""
     import torch
 
     if check_precision(precision) == "auto":
-        return torch.bfloat16 if multiscale and native_bfloat16(cpuinfo) else torch.float32
+        low_spp_only = 0 < max_spp <= FLAT_BF16_MAX_SPP
+        return torch.bfloat16 if (multiscale or low_spp_only) and native_bfloat16(cpuinfo) else torch.float32
     return torch.bfloat16 if precision == "bfloat16" else torch.float32

@@ -70,7 +70,8 @@ def train_step(model: torch.nn.Module, optimizer: torch.optim.Optimizer, noisy: 
                micro_batch: int | None = None,
                reduce_loss: Callable[[float], float] | None = None,
                gradient_weight: float = GRADIENT_WEIGHT, log_eps: float = 0.0,
-               ms_ssim_weight: float = 0.0) -> StepResult:
+               ms_ssim_weight: float = 0.0, loss_norm: str = "l1",
+               loss_space: Callable[[torch.Tensor], torch.Tensor] | None = None) -> StepResult:
     """Forward, loss, backward and (unless NaN/Inf) an optimiser update on one batch.
 
     ``noisy``: NxCxHxW transfer-space input, ``ref``: Nx3xHxW transfer-space target.
@@ -79,7 +80,8 @@ def train_step(model: torch.nn.Module, optimizer: torch.optim.Optimizer, noisy: 
     (the update still averages over all N patches, but BatchNorm normalises each chunk with its
     own statistics and updates its running statistics once per chunk).
     ``gradient_weight``: share of the gradient-L1 term in the loss, ``log_eps`` > 0: the mean of
-    the patches' log losses, ``ms_ssim_weight``: share of 1 - MS-SSIM (all :func:`model.loss.denoising_loss`).
+    the patches' log losses, ``ms_ssim_weight``: share of 1 - MS-SSIM, ``loss_norm`` and ``loss_space``
+    (its ``norm`` and ``to_space``; all :func:`model.loss.denoising_loss`).
     ``reduce_loss`` maps each chunk's loss to the value all data-parallel processes agree on (the
     mean over DDP ranks, NaN if any rank's is NaN), so that every rank skips the same steps;
     None keeps this process's own value.
@@ -94,7 +96,7 @@ def train_step(model: torch.nn.Module, optimizer: torch.optim.Optimizer, noisy: 
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
             out = model(noisy[start:start + size])
         loss = denoising_loss(out, ref[start:start + size], gradient_weight, log_eps,
-                              ms_ssim_weight) * (len(out) / len(noisy))
+                              ms_ssim_weight, loss_norm, loss_space) * (len(out) / len(noisy))
         chunk_loss = float(loss.detach())
         if reduce_loss is not None:
             chunk_loss = reduce_loss(chunk_loss)

@@ -186,6 +186,8 @@ class _Run:
         self.data_config, self.pairs, val_images = self._load_data(ckpt)
         self.validator = Validator(val_images, config.oidn) if val_images and config.val_every else None
         self.model, self.optimizer = self._build(ckpt)
+        # the loss's map of output and reference (None: compare in the network's transfer space)
+        self.loss_space = get_transfer(config.model.transfer).display if config.loss_space == "display" else None
         extra = ckpt.header.get("extra", {}) if ckpt else {}
         self.step = int(ckpt.header["step"]) if ckpt else 0
         self.best_psnr: float | None = extra.get("best_psnr")
@@ -332,7 +334,8 @@ def _one_step(run: _Run, net: torch.nn.Module, source: BatchSource, bar: Progres
     result = train_step(net, run.optimizer, noisy, ref, step=run.step, lr=lr, guard=run.guard,
                         grad_clip=config.grad_clip, bf16=config.bf16, micro_batch=config.micro_batch,
                         reduce_loss=run.reduce_loss, gradient_weight=config.gradient_weight,
-                        log_eps=config.log_loss_eps, ms_ssim_weight=config.ms_ssim_weight)
+                        log_eps=config.log_loss_eps, ms_ssim_weight=config.ms_ssim_weight,
+                        loss_norm=config.loss_norm, loss_space=run.loss_space)
     run.step += 1
     if result.skipped:
         run.meter.skipped += 1

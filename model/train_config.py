@@ -25,9 +25,11 @@ from typing import Any
 
 from imaging.errors import ConfigError
 from model.config import ModelConfig, PRESETS
-from model.loss import SSIM_WINDOW
+from model.loss import NORMS as LOSS_NORMS, SSIM_WINDOW
 from model.patches import PatchConfig
 from model.step import learning_rate
+
+LOSS_SPACES = ("transfer", "display")  # TrainConfig.loss_space
 
 # Fields that may differ on --resume without changing what is being trained.
 RESUMABLE_OVERRIDES = frozenset({
@@ -55,6 +57,10 @@ class TrainConfig:
     mean loss (:mod:`model.loss`: every spp level counts per relative gain, as mean PSNR does).
     ``ms_ssim_weight`` > 0: share of 1 - MS-SSIM in the loss (:mod:`model.loss`; Zhao et al.'s and
     OIDN's mix: 0.84 with ``gradient_weight`` 0); needs patches of at least 11 px.
+    ``loss_norm``: "l1" (the paper's) or "l2" (squared differences in both loss terms: each pixel's
+    conditional mean, which PSNR rewards, instead of its median; :mod:`model.loss`).
+    ``loss_space``: "transfer" (the network's own space, the paper's) or "display" (the metrics'
+    tonemap, :meth:`model.transfer.TransferFunction.display`: the space PSNR is measured in).
     ``max_scenes`` > 0: train and validate on the scenes with index below it only (the dataset
     may hold more, e.g. while it is still being generated), so a run's data is fixed; it applies
     to every dataset of the run. ``extra_data``: further dataset folders trained and validated
@@ -85,6 +91,8 @@ class TrainConfig:
     gradient_weight: float = 0.1
     log_loss_eps: float = 0.0
     ms_ssim_weight: float = 0.0
+    loss_norm: str = "l1"
+    loss_space: str = "transfer"
     max_scenes: int = 0
     max_spp: int = 0
     min_spp: int = 0
@@ -139,6 +147,10 @@ class TrainConfig:
             raise ConfigError(f"log_loss_eps must be in [0, 1], got {self.log_loss_eps!r}")
         if not (isinstance(self.ms_ssim_weight, (int, float)) and 0 <= self.ms_ssim_weight <= 1):
             raise ConfigError(f"ms_ssim_weight must be in [0, 1], got {self.ms_ssim_weight!r}")
+        if self.loss_norm not in LOSS_NORMS:
+            raise ConfigError(f"loss_norm must be one of {', '.join(LOSS_NORMS)}, got {self.loss_norm!r}")
+        if self.loss_space not in LOSS_SPACES:
+            raise ConfigError(f"loss_space must be one of {', '.join(LOSS_SPACES)}, got {self.loss_space!r}")
         if self.ms_ssim_weight > 0 and self.patch.size < SSIM_WINDOW:
             raise ConfigError(f"ms_ssim_weight needs patches of at least {SSIM_WINDOW} px (the SSIM window), "
                               f"got {self.patch.size}")

@@ -18,6 +18,8 @@ import torch
 from imaging.errors import ConfigError
 
 HDR_MAX = 65504.0
+DISPLAY_GAMMA = 2.2  # imaging.metrics.tonemap's
+DISPLAY_FLOOR = 1e-5  # TransferFunction.display's lower bound of y / (1 + y)
 
 # OIDN's PU curve: y <= Y0 linear, y <= Y1 power, log above; X0/X1 are the curve at Y0/Y1.
 _PU_A = 1.41283765e03
@@ -87,6 +89,23 @@ class TransferFunction:
         x = encoded.to(_compute_dtype(encoded))
         y = torch.expm1(x / _LOG_SCALE) if self.name == "log" else _pu_inverse(x / _PU_SCALE)  # x / s: new
         return y.clamp_(max=HDR_MAX).to(encoded.dtype)  # float32 rounding at 1.0 gives 65504.008
+
+    def display(self, encoded: torch.Tensor) -> torch.Tensor:
+        """Transfer space -> the metrics' display values ``(y / (1 + y)) ** (1 / 2.2)`` of the
+        radiance ``y`` (:func:`imaging.metrics.tonemap`), differentiable: a loss in the space PSNR
+        is measured in. ``encoded`` is clamped to [0, 1] first (the metric clamps negative
+        radiance) and ``y / (1 + y)`` to at least ``DISPLAY_FLOOR`` (the gamma's slope is infinite
+        at 0; the floor moves a display value by at most 0.006)."""
+        x = torch.clamp(encoded, 0.0, 1.0)
+        y = torch.expm1(x / _LOG_SCALE) if self.name == "log" else _pu_inverse_autograd(x / _PU_SCALE)
+        return torch.clamp(y / (1.0 + y), min=DISPLAY_FLOOR) ** (1.0 / DISPLAY_GAMMA)
+
+
+def _pu_inverse_autograd(x: torch.Tensor) -> torch.Tensor:
+    """:func:`_pu_inverse` without in-place operations, for a loss to differentiate through."""
+    log_branch = torch.exp((x - _PU_G) / _PU_E) - _PU_F
+    power = torch.clamp((x - _PU_D) / _PU_B, min=0.0) ** (1.0 / _PU_C)
+    return torch.where(x <= _PU_X0, x / _PU_A, torch.where(x <= _PU_X1, power, log_branch))
 
 
 def get_transfer(name: str) -> TransferFunction:

@@ -129,9 +129,11 @@ class Network:
 
         model, config, meta = load_model(path)
         model.eval()
-        dtype = compute_dtype(precision, config.multiscale) if optimize else torch.float32
-        net = prepare_for_inference(model, dtype) if optimize else model
-        return cls(path, model, config, meta, net, dtype, receptive_radius(config), limit)
+        member = cls(path, model, config, meta, model, torch.float32, receptive_radius(config), limit)
+        if optimize:
+            member.dtype = compute_dtype(precision, config.multiscale, max_spp=member.max_spp)
+            member.net = prepare_for_inference(model, member.dtype)
+        return member
 
     @property
     def precision(self) -> str:

@@ -82,9 +82,12 @@ def test_settings_refuse_two_references_or_none_when_needed() -> None:
 
 
 @pytest.mark.slow
-def test_scoreboard_and_render_and_denoise_give_the_same_psnr(tmp_path: Path, ckpt: Path) -> None:
+@pytest.mark.parametrize("energy, energy_flag", [("on", []), ("off", ["--no-energy"])])
+def test_scoreboard_and_render_and_denoise_give_the_same_psnr(tmp_path: Path, ckpt: Path, energy: str,
+                                                              energy_flag: list[str]) -> None:
     """The same scene, spp and seed through ``python -m benchmarks.evaluate`` and through
-    ``render-and-denoise``: the same noisy, denoised and OIDN figures."""
+    ``render-and-denoise``: the same noisy, denoised and OIDN figures, with and without the
+    energy correction (``--energy off`` / ``--no-energy``)."""
     folder = tmp_path / "eval" / "demo"
     shutil.copytree(DEMO.parent, folder)
     (folder / "demo.xml").rename(folder / "scene.xml")
@@ -95,11 +98,11 @@ def test_scoreboard_and_render_and_denoise_give_the_same_psnr(tmp_path: Path, ck
                                                        "shape": [SIZE[1], SIZE[0], 3]}))
     spp = 4
     assert scoreboard.main(["--eval-dir", str(tmp_path / "eval"), "--model", str(ckpt), "--spp", str(spp),
-                            "--out", str(tmp_path / "board"), "--quiet"]) == 0
+                            "--out", str(tmp_path / "board"), "--quiet", "--energy", energy]) == 0
     board = json.loads((tmp_path / "board" / "evaluate.json").read_text())["scenes"]["demo"][str(spp)]
     assert render_main([str(folder / "scene.xml"), "--res", *map(str, SIZE), "--spp", str(spp), "--seed",
                         str(scoreboard.SEED), "--reference", str(folder / "reference.exr"), "--model", str(ckpt),
-                        "--out", str(tmp_path / "run"), "--quiet"]) == 0
+                        "--out", str(tmp_path / "run"), "--quiet", *energy_flag]) == 0
     quality = json.loads((tmp_path / "run" / "metrics.json").read_text())["quality"]
     assert quality["denoised"]["psnr"] == board["ours"]["psnr"]
     assert quality["noisy"]["psnr"] == board["noisy"]["psnr"]

@@ -123,3 +123,31 @@ def test_ms_ssim_weight_mixes_per_patch_and_keeps_gradients_finite() -> None:
     torch.testing.assert_close(only, (1 - ms_ssim(out, ref)).mean())
     mixed.backward()
     assert out.grad is not None and torch.isfinite(out.grad).all() and out.grad.abs().sum() > 0
+
+
+def test_l2_norm_squares_both_terms() -> None:
+    # The ramp of test_hand_computed_ramp: squared values 0,1,4,9 -> mean 3.5; x-differences all
+    # 1 -> squared 1; y-differences 0.
+    out = torch.arange(4.0).repeat(4, 1).view(1, 1, 4, 4)
+    ref = torch.zeros_like(out)
+    assert float(denoising_loss(out, ref, norm="l2")) == pytest.approx(0.9 * 3.5 + 0.1 * 0.5, rel=1e-6)
+    with pytest.raises(ValueError, match="unknown loss norm 'l3'"):
+        denoising_loss(out, ref, norm="l3")
+
+
+def test_l2_is_minimised_by_the_mean_l1_by_the_median() -> None:
+    # A constant prediction c of skewed samples: the L2 loss is least at their mean, L1 at their median.
+    samples = torch.tensor([0.0, 0.0, 0.0, 1.0]).view(4, 1, 1, 1)
+    def loss(c: float, norm: str) -> float:
+        return float(denoising_loss(torch.full_like(samples, c), samples, gradient_weight=0, norm=norm))
+    grid = [i / 100 for i in range(101)]
+    assert min(grid, key=lambda c: loss(c, "l2")) == pytest.approx(0.25)
+    assert min(grid, key=lambda c: loss(c, "l1")) == pytest.approx(0.0)
+
+
+def test_to_space_maps_both_images_before_the_differences() -> None:
+    gen = torch.Generator().manual_seed(2)
+    a, b = torch.rand(2, 3, 6, 6, generator=gen), torch.rand(2, 3, 6, 6, generator=gen)
+    mapped = denoising_loss(a, b, norm="l2", to_space=torch.sqrt)
+    assert float(mapped) == pytest.approx(float(denoising_loss(a.sqrt(), b.sqrt(), norm="l2")), rel=1e-6)
+    assert float(mapped) != pytest.approx(float(denoising_loss(a, b, norm="l2")), rel=1e-3)

@@ -53,3 +53,34 @@ def test_negatives_clamped(name: str) -> None:
 def test_unknown_name() -> None:
     with pytest.raises(ConfigError, match="unknown transfer function 'srgb'"):
         get_transfer("srgb")
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_display_is_the_metrics_tonemap(name: str) -> None:
+    # display(forward(y)) = imaging.metrics.tonemap(y) wherever y / (1 + y) is above the floor
+    # (y >= ~1e-5), within the floor's bound below it; finite, bounded gradients everywhere.
+    from imaging.metrics import tonemap
+    from model.transfer import DISPLAY_FLOOR, DISPLAY_GAMMA
+    t = get_transfer(name)
+    y = _radiance()[::20]
+    x = t.forward(y).requires_grad_()
+    shown = t.display(x)
+    expected = torch.from_numpy(tonemap(y.numpy())).float()
+    above = y / (1 + y) >= DISPLAY_FLOOR * 1.01
+    torch.testing.assert_close(shown[above], expected[above], rtol=2e-5, atol=1e-6)
+    assert float((shown.detach()[~above] - expected[~above]).abs().max()) <= DISPLAY_FLOOR ** (1 / DISPLAY_GAMMA)
+    shown.sum().backward()
+    assert bool(torch.isfinite(x.grad).all()) and float(x.grad.min()) >= 0.0
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_display_clamps_out_of_range_codes(name: str) -> None:
+    # A network output outside [0, 1] shows as black / the brightest value, with no gradient
+    # (the metric clamps negative radiance; nothing above HDR_MAX exists), and never NaN.
+    t = get_transfer(name)
+    x = torch.tensor([-3.0, 0.0, 1.0, 7.0], requires_grad=True)
+    shown = t.display(x)
+    assert float(shown[0]) == float(shown[1]) and float(shown[2]) == float(shown[3])
+    shown.sum().backward()
+    assert x.grad.tolist()[0] == 0.0 and x.grad.tolist()[3] == 0.0
+    assert bool(torch.isfinite(x.grad).all())

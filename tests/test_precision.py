@@ -20,7 +20,7 @@ from model.architectures import prepare_for_inference
 from model.checkpoint import save_checkpoint
 from model.config import ModelConfig
 from model.transfer import get_transfer
-from model.precision import PRECISIONS, compute_dtype, cpu_flags, native_bfloat16
+from model.precision import FLAT_BF16_MAX_SPP, PRECISIONS, compute_dtype, cpu_flags, native_bfloat16
 from pipeline.cli import denoise_main
 from pipeline.denoise import Denoiser
 from tests.test_infer_speedups import _trained_like
@@ -43,6 +43,11 @@ def test_flags_and_native_bfloat16(tmp_path: Path) -> None:
     assert cpu_flags(tmp_path / "missing") == frozenset() and not native_bfloat16(tmp_path / "missing")
     assert compute_dtype("auto", True, amx) == torch.bfloat16
     assert compute_dtype("auto", False, amx) == torch.float32  # flat nets lose 0.5 dB in bfloat16
+    # ... at 128 spp; one that only runs on renders of <= 8 spp loses nothing (module docstring)
+    assert compute_dtype("auto", False, amx, max_spp=FLAT_BF16_MAX_SPP) == torch.bfloat16
+    assert compute_dtype("auto", False, amx, max_spp=FLAT_BF16_MAX_SPP + 1) == torch.float32
+    assert compute_dtype("auto", False, plain, max_spp=4) == torch.float32
+    assert compute_dtype("float32", False, amx, max_spp=4) == torch.float32
     assert compute_dtype("auto", True, plain) == torch.float32
     assert compute_dtype("float32", True, amx) == torch.float32
     assert compute_dtype("bfloat16", False, plain) == torch.bfloat16
@@ -109,3 +114,14 @@ def test_denoise_cli_refuses_an_unknown_precision(tmp_path: Path, capsys: pytest
     assert exc.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--precision" in err[0] and "fp8" in err[0]
+
+
+def test_auto_gives_a_flat_low_spp_member_bfloat16_where_native(tmp_path: Path) -> None:
+    # An ensemble of the same flat checkpoint at <= 8 spp and above: under auto only the first
+    # computes in bfloat16, and only on a CPU with native bfloat16 (what this machine has).
+    path = tmp_path / "flat.ckpt"
+    save_checkpoint(path, _models()[0], step=0)
+    low, high = Denoiser(f"{path}:-{FLAT_BF16_MAX_SPP}+{path}:{FLAT_BF16_MAX_SPP + 1}-").members
+    assert low.precision == ("bfloat16" if native_bfloat16() else "float32")
+    assert high.precision == "float32"
+    assert Denoiser(f"{path}:-4", precision="float32").members[0].precision == "float32"

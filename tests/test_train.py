@@ -89,6 +89,32 @@ def test_ms_ssim_mix_trains_and_is_recorded(dataset: Path, tmp_path: Path) -> No
     assert read_checkpoint(run / "last.ckpt").header["train_config"]["ms_ssim_weight"] == 0.84
 
 
+def test_l2_display_loss_trains_and_is_recorded(dataset: Path, tmp_path: Path) -> None:
+    # The squared error in the metrics' display space learns (the loss falls) and both choices are
+    # recorded in the checkpoint. (At this length the tiny net does not yet beat the noisy input
+    # in display space, where the gamma weighs the dark synthetic pixels most; in transfer space it does.)
+    run = tmp_path / "run"
+    cfg = _config(tmp_path, model=TINY_MODEL, batch=4, val_every=20, progress=False, log_every=10)
+    assert main(["--data", str(dataset), "--out", str(run), "--config", cfg, "--steps", "40",
+                 "--lr", "0.003", "--loss-norm", "l2", "--loss-space", "display"]) == 0
+    losses = [r["loss"] for r in _log(run) if r["type"] == "train"]
+    assert all(0 < loss < 1 for loss in losses) and losses[-1] < 0.8 * losses[0]
+    header = read_checkpoint(run / "last.ckpt").header["train_config"]
+    assert (header["loss_norm"], header["loss_space"]) == ("l2", "display")
+
+
+@pytest.mark.parametrize("field, value, message", [
+    ("loss_norm", "l3", "loss_norm must be one of l1, l2"),
+    ("loss_space", "linear", "loss_space must be one of transfer, display"),
+])
+def test_unknown_loss_choice_in_a_config_file(dataset: Path, tmp_path: Path, capsys: pytest.CaptureFixture,
+                                              field: str, value: str, message: str) -> None:
+    cfg = _config(tmp_path, model=TINY_MODEL, **{field: value})
+    assert main(["--data", str(dataset), "--out", str(tmp_path / "r"), "--config", cfg]) == 1
+    err = capsys.readouterr().err.strip()
+    assert message in err and "\n" not in err
+
+
 def test_resume_continues_exactly(dataset: Path, tmp_path: Path) -> None:
     cfg = _config(tmp_path, model=TINY_MODEL, batch=4, lr_decay_every=3, log_every=2, ckpt_every=2,
                   val_every=0, progress=False)
