@@ -14,7 +14,7 @@ corrections that bfloat16 rounds away). That loss is the clean renders': a flat 
 on renders of at most :data:`FLAT_BF16_MAX_SPP` spp (an ensemble member limited so, ``MODEL:-8``, or a
 checkpoint trained on them) computes in bfloat16 under ``auto`` too, where the render's own noise is
 far above the rounding: the default with its flat low-spp member in bfloat16 scored 29.11 / 31.05 /
-32.95 / 34.83 dB at 1 / 2 / 4 / 8 spp against 29.10 / 31.04 / 32.94 / 34.83 in float32, at 0.55-0.6x
+32.95 / 34.83 dB at 1 / 2 / 4 / 8 spp against 29.10 / 31.04 / 32.94 / 34.83 in float32, at 0.57-0.61x
 the denoise time (``python -m benchmarks.evaluate --precisions auto,bfloat16 --spp 1,2,4,8,16``,
 2026-12-04; 16 spp, where `fast` runs in it too: 36.58 against 36.63). Its speed:
 ``benchmarks/inference.py`` (docs/speed.md).

@@ -38,6 +38,12 @@ DEFAULT_PIVOT_SPP = 256  # below this many spp the strength grows as pivot/spp (
 # of its window, and of blend with its copy, both float32 HxWx3 in: a bound with headroom of what
 # tests/test_noise_guard.py measures with tracemalloc.
 GUARD_BYTES_PER_PIXEL = 48
+# Per-value bounds of the variance and of the squared change before the channel and window sums, so
+# that the sums (3 channels x a window's pixels, times the strength, at most DEFAULT_PIVOT_SPP) stay
+# far inside float32 (3.4e38) for any window up to ~1e5 pixels; real values are many orders below
+# (a variance of 1e30 means nothing is known there, and min(1, V / D) is 1 either way).
+VALUE_MAX = 1e30
+CHANGE_MAX = 1e15  # |denoised - noisy|, squared: VALUE_MAX
 BLEND_BYTES_PER_PIXEL = 48
 
 
@@ -76,8 +82,10 @@ def blend_weight(noisy: np.ndarray, denoised: np.ndarray, variance: np.ndarray,
     anywhere_unbounded = not finite.all()
     with np.errstate(invalid="ignore", over="ignore"):
         positive = np.maximum(var, np.float32(0.0))  # inf or NaN where unbounded: zeroed below
+    np.minimum(positive, np.float32(VALUE_MAX), out=positive)  # window sums stay finite (VALUE_MAX)
     total = channel_sum(positive)
     change = np.subtract(denoised, noisy, dtype=np.float32)
+    np.clip(change, np.float32(-CHANGE_MAX), np.float32(CHANGE_MAX), out=change)
     change *= change
     d_total = channel_sum(change)
     del positive, change

@@ -121,6 +121,24 @@ def test_a_perfect_denoiser_is_mostly_kept(strength: float, removed: float) -> N
     assert float(((out - truth) ** 2).mean()) < (1 - removed) * v
 
 
+@pytest.mark.parametrize("strength", [1.0, 256.0])
+def test_extreme_finite_values_stay_finite_without_warnings(strength: float) -> None:
+    # Variances at float32's maximum and changes near it (a broken file, a firefly of 3e38): the
+    # channel and window sums stay finite (no overflow warning), a huge variance frees the
+    # denoiser (weight 1) and a huge change where the variance is ordinary keeps the render (weight ~0).
+    big = np.finfo(np.float32).max
+    noisy = np.ones((12, 12, 3), np.float32)
+    denoised = noisy.copy()
+    variance = np.full((12, 12, 3), 0.01, np.float32)
+    variance[:, :6] = big
+    denoised[:, 9:] = -big
+    with np.errstate(all="raise"):
+        w = blend_weight(noisy, denoised, variance, radius=1, strength=strength)[..., 0]
+    assert np.isfinite(w).all() and w.min() >= 0 and w.max() <= 1
+    assert (w[:, :6] == 1).all()
+    assert (w[:, 10:] < 1e-20).all()
+
+
 def test_nonfinite_variance_frees_its_window_only() -> None:
     noisy, denoised = np.zeros((1, 9, 3), np.float32), np.ones((1, 9, 3), np.float32)
     variance = np.zeros_like(noisy)
