@@ -26,7 +26,7 @@ tonemap of :meth:`model.transfer.TransferFunction.display`); MS-SSIM stays in tr
 from __future__ import annotations
 
 import math
-from typing import Callable
+from collections.abc import Callable
 
 import torch
 import torch.nn.functional as F

@@ -38,13 +38,13 @@ DEFAULT_PIVOT_SPP = 256  # below this many spp the strength grows as pivot/spp (
 # of its window, and of blend with its copy, both float32 HxWx3 in: a bound with headroom of what
 # tests/test_noise_guard.py measures with tracemalloc.
 GUARD_BYTES_PER_PIXEL = 48
+BLEND_BYTES_PER_PIXEL = 48
 # Per-value bounds of the variance and of the squared change before the channel and window sums, so
 # that the sums (3 channels x a window's pixels, times the strength, at most DEFAULT_PIVOT_SPP) stay
 # far inside float32 (3.4e38) for any window up to ~1e5 pixels; real values are many orders below
 # (a variance of 1e30 means nothing is known there, and min(1, V / D) is 1 either way).
 VALUE_MAX = 1e30
 CHANGE_MAX = 1e15  # |denoised - noisy|, squared: VALUE_MAX
-BLEND_BYTES_PER_PIXEL = 48
 
 
 def strength_for(spp: int, pivot_spp: float = DEFAULT_PIVOT_SPP) -> float:

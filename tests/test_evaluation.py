@@ -129,3 +129,12 @@ def test_skip_below_flag_goes_into_the_settings(tmp_path: Path, ckpt: Path) -> N
     assert render_main([str(DEMO), "--res", "16", "16", "--spp", "2", "--model", str(ckpt), "--no-compare",
                         "--skip-below", "1", "--out", str(out)]) == 0
     assert json.loads((out / "config.json").read_text())["render"]["skip_below"] == 1.0
+
+
+def test_scoreboard_refuses_an_unknown_energy_choice(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    (tmp_path / "eval" / "demo").mkdir(parents=True)
+    with pytest.raises(SystemExit) as exit_info:
+        scoreboard.main(["--eval-dir", str(tmp_path / "eval"), "--energy", "on,maybe", "--quiet"])
+    assert exit_info.value.code != 0
+    err = capsys.readouterr().err.strip()
+    assert "--energy: maybe is not one of on, off" in err and "\n" not in err
