@@ -179,3 +179,18 @@ def test_a_checkpoint_records_the_code_that_wrote_it(tmp_path: Path) -> None:
     assert code["torch"] == torch.__version__
     assert code["git_commit"] is None or len(code["git_commit"]) == 40
 
+
+
+SHIPPED = sorted((Path(__file__).resolve().parents[1] / "model" / "weights").glob("*.ckpt"))
+
+
+@pytest.mark.parametrize("path", SHIPPED, ids=[p.stem for p in SHIPPED])
+def test_shipped_checkpoints_load_and_carry_their_training_record(path: Path) -> None:
+    # Every shipped checkpoint rebuilds its model from the file alone, with finite weights, and has
+    # its run's log and training config beside it; one trained on low spp records its range.
+    model, config, meta = load_model(path)
+    assert all(torch.isfinite(p).all() for p in model.parameters())
+    assert (path.parent / f"{path.stem}_log.jsonl").is_file()
+    train_config = json.loads((path.parent / f"{path.stem}_train_config.json").read_text())
+    if path.stem.endswith("-lowspp"):
+        assert meta["train_config"]["max_spp"] == train_config["max_spp"] == 16
