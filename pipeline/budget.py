@@ -180,17 +180,27 @@ def window_pixels(height: int, width: int, core: Core, margin: int) -> int:
     return sum((t.wy1 - t.wy0) * (t.wx1 - t.wx0) for t in plan_tiles(height, width, core, margin))
 
 
+def probe_spps(denoiser: Denoiser) -> list[int]:
+    """One spp in each range where a different set of an ensemble's members runs: 1 and every
+    member's lowest spp (a single model: just 1)."""
+    return sorted({1} | {m.min_spp for m in denoiser.members if m.min_spp})
+
+
 def denoise_seconds(denoiser: Denoiser, height: int, width: int, side: int = 128) -> float:
     """Predicted seconds to denoise an HxW image: timed runs on (side/2)^2 and side^2 images give
-    a cost per call and per window pixel, applied to the real image's tiles. Timed as a 1-spp
-    render: an ensemble's members for low spp run too (the most it can cost)."""
+    a cost per call and per window pixel, applied to the real image's tiles. An ensemble is timed
+    in every spp range where a different set of its members runs (:func:`probe_spps`; their
+    formats differ too: the default's flat member is in bfloat16 up to 8 spp only) and the most
+    it costs is taken, whatever spp the plan then chooses."""
     side = max(16, min(side, max(height, width)))
     img = np.random.default_rng(0).random((side, side, 3), dtype=np.float32)
-    denoiser.denoise_array(img[:16, :16], spp=1)  # warm-up
+    spps = probe_spps(denoiser)
+    for spp in spps:
+        denoiser.denoise_array(img[:16, :16], spp=spp)  # warm-up
     margin = denoiser.margin
     half = side // 2
-    t_half = denoiser.denoise_array(img[:half, :half], spp=1).seconds
-    t_full = denoiser.denoise_array(img, spp=1).seconds
+    t_half = max(denoiser.denoise_array(img[:half, :half], spp=spp).seconds for spp in spps)
+    t_full = max(denoiser.denoise_array(img, spp=spp).seconds for spp in spps)
     px_half = window_pixels(half, half, denoiser.cores(half, half), margin)
     px_full = window_pixels(side, side, denoiser.cores(side, side), margin)
     per_px = (t_full - t_half) / (px_full - px_half)

@@ -95,22 +95,31 @@ def test_probe_render_fits_fixed_and_per_sample_cost(monkeypatch: pytest.MonkeyP
     assert calls[:3] == [1, 3, 1] and 4 <= calls[3] <= 256
 
 
-def test_denoise_seconds_scales_by_tile_windows() -> None:
+@pytest.mark.parametrize("member_ranges, dearest", [([(0, 0)], 1), ([(9, 0), (0, 8), (0, 16), (17, 0)], 9)])
+def test_denoise_seconds_scales_by_tile_windows(member_ranges: list[tuple[int, int]], dearest: int) -> None:
+    # The cost per call and per window pixel of the dearest spp range: a single model is timed at
+    # 1 spp; the default's shape at 1, 9 and 17 spp, where (as since its flat low-spp member went to
+    # bfloat16) 9-16 spp cost the most.
+    asked: set[int] = set()
+
     class FakeDenoiser:
         margin = 8
+        members = [SimpleNamespace(min_spp=lo, max_spp=hi) for lo, hi in member_ranges]
 
         def cores(self, height: int, width: int) -> tuple[int, int]:
             return 64, 64
 
         def denoise_array(self, img: np.ndarray, spp: int | None = None) -> SimpleNamespace:
-            assert spp == 1  # timed with every member an ensemble may run
+            asked.add(spp)
             h, w = img.shape[:2]
-            return SimpleNamespace(seconds=0.01 + 1e-6 * window_pixels(h, w, 64, 8))  # one tile
+            scale = 2.0 if spp == dearest else 1.0
+            return SimpleNamespace(seconds=scale * (0.01 + 1e-6 * window_pixels(h, w, 64, 8)))  # one tile
 
     tiles = len(list(plan_tiles(300, 200, 64, 8)))
     assert tiles > 1
     assert denoise_seconds(FakeDenoiser(), 300, 200) == pytest.approx(
-        0.01 * tiles + 1e-6 * window_pixels(300, 200, 64, 8))
+        2.0 * (0.01 * tiles + 1e-6 * window_pixels(300, 200, 64, 8)))
+    assert asked == ({1} if len(member_ranges) == 1 else {1, 9, 17})
     assert window_pixels(300, 200, 64, 8) > 300 * 200  # overlapping windows cost extra
 
 
