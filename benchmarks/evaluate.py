@@ -39,7 +39,7 @@ from imaging.usage import COMMAND_ERRORS, OneLineParser, int_list, name_list
 from model.flips import FLIPS
 from model.precision import PRECISIONS
 from pipeline.denoise import Denoiser
-from pipeline.energy import EnergySettings
+from pipeline.energy import settings_if
 from pipeline.evaluation import BARE, OIDN, evaluate
 from pipeline.viewer import Page, Table, ViewerRow, ViewerSet, flip_map
 
@@ -205,7 +205,7 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(f"--energy: {', '.join(bad_energy)} is not one of {', '.join(ENERGY_CHOICES)}")
         denoisers = {(spec or "default") + ("" if i == 0 else f"@{prec}") + ("" if n == 1 else f"+flips{n}")
                      + ("" if e == "on" else "+no-energy"):
-                     Denoiser(spec, precision=prec, flips=n, energy=EnergySettings() if e == "on" else None)
+                     Denoiser(spec, precision=prec, flips=n, energy=settings_if(e == "on"))
                      for spec in (args.models or [args.model]) for i, prec in enumerate(args.precisions)
                      for n in args.flips for e in args.energy}
         for d in denoisers.values():  # first calls pay one-off set-up: keep it out of the timings

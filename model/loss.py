@@ -43,8 +43,8 @@ _SSIM_FLOOR = 1e-4  # contrast terms are clamped to this before the fractional p
 NORMS = {"l1": torch.abs, "l2": torch.square}  # --loss-norm: per-value error of both terms
 
 
-def _gradient_l1(diff: torch.Tensor, dims: tuple[int, ...],
-                 error: Callable[[torch.Tensor], torch.Tensor] = torch.abs) -> torch.Tensor:
+def _gradient_error(diff: torch.Tensor, dims: tuple[int, ...],
+                    error: Callable[[torch.Tensor], torch.Tensor] = torch.abs) -> torch.Tensor:
     gx = error(diff[..., :, 1:] - diff[..., :, :-1]).mean(dims) if diff.shape[-1] > 1 else diff.new_zeros(())
     gy = error(diff[..., 1:, :] - diff[..., :-1, :]).mean(dims) if diff.shape[-2] > 1 else diff.new_zeros(())
     return 0.5 * (gx + gy)
@@ -100,7 +100,7 @@ def ms_ssim(out: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
 
 def gradient_l1(out: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
     """Mean of the x- and y-gradient L1 distances (each a mean over its valid differences)."""
-    return _gradient_l1(out - ref, tuple(range(out.dim())))
+    return _gradient_error(out - ref, tuple(range(out.dim())))
 
 
 def denoising_loss(out: torch.Tensor, ref: torch.Tensor, gradient_weight: float = GRADIENT_WEIGHT,
@@ -125,7 +125,7 @@ def denoising_loss(out: torch.Tensor, ref: torch.Tensor, gradient_weight: float 
     dims = tuple(range(1, diff.dim())) if per_patch else tuple(range(diff.dim()))
     loss = error(diff).mean(dims)
     if gradient_weight != 0:
-        loss = (1.0 - gradient_weight) * loss + gradient_weight * _gradient_l1(diff, dims, error)
+        loss = (1.0 - gradient_weight) * loss + gradient_weight * _gradient_error(diff, dims, error)
     if ms_ssim_weight != 0:
         loss = (1.0 - ms_ssim_weight) * loss + ms_ssim_weight * (1.0 - ms_ssim(out, ref))
     if log_eps != 0:

@@ -188,28 +188,31 @@ def probe_spps(denoiser: Denoiser) -> list[int]:
 
 def denoise_seconds(denoiser: Denoiser, height: int, width: int, side: int = 128) -> float:
     """Predicted seconds to denoise an HxW image: timed runs on (side/2)^2 and side^2 images give
-    a cost per call and per window pixel, applied to the real image's tiles. An ensemble is timed
-    in every spp range where a different set of its members runs (:func:`probe_spps`; their
-    formats differ too: the default's flat member is in bfloat16 up to 8 spp only) and the most
-    it costs is taken, whatever spp the plan then chooses."""
+    a cost per call and per window pixel, applied to the real image's tiles. An ensemble is
+    predicted so in every spp range where a different set of its members runs (:func:`probe_spps`;
+    their formats differ too: the default's flat member is in bfloat16 up to 8 spp only) and the
+    dearest prediction is taken, whatever spp the plan then chooses."""
     side = max(16, min(side, max(height, width)))
     img = np.random.default_rng(0).random((side, side, 3), dtype=np.float32)
-    spps = probe_spps(denoiser)
-    for spp in spps:
-        denoiser.denoise_array(img[:16, :16], spp=spp)  # warm-up
     margin = denoiser.margin
     half = side // 2
-    t_half = max(denoiser.denoise_array(img[:half, :half], spp=spp).seconds for spp in spps)
-    t_full = max(denoiser.denoise_array(img, spp=spp).seconds for spp in spps)
     px_half = window_pixels(half, half, denoiser.cores(half, half), margin)
     px_full = window_pixels(side, side, denoiser.cores(side, side), margin)
-    per_px = (t_full - t_half) / (px_full - px_half)
-    per_call = t_half - per_px * px_half
-    if per_px <= 0 or per_call < 0:  # timing noise: all of it per pixel
-        per_px, per_call = t_full / px_full, 0.0
     core = denoiser.cores(height, width)
     tiles = sum(1 for _ in plan_tiles(height, width, core, margin))
-    return per_call * tiles + per_px * window_pixels(height, width, core, margin)
+    pixels = window_pixels(height, width, core, margin)
+
+    def predicted(spp: int) -> float:
+        denoiser.denoise_array(img[:16, :16], spp=spp)  # warm-up
+        t_half = denoiser.denoise_array(img[:half, :half], spp=spp).seconds
+        t_full = denoiser.denoise_array(img, spp=spp).seconds
+        per_px = (t_full - t_half) / (px_full - px_half)
+        per_call = t_half - per_px * px_half
+        if per_px <= 0 or per_call < 0:  # timing noise: all of it per pixel
+            per_px, per_call = t_full / px_full, 0.0
+        return per_call * tiles + per_px * pixels
+
+    return max(predicted(spp) for spp in probe_spps(denoiser))
 
 
 def budget_candidates(model: str | None, settings: RenderSettings) -> dict[str, Denoiser]:

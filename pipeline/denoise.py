@@ -187,6 +187,10 @@ class DenoiseResult:
     network: np.ndarray | None = None  # the network's output before the guard (``keep_network``)
     models: tuple[str, ...] = ()  # the checkpoints' stems that ran (an ensemble: :meth:`Denoiser.active`)
 
+    def energy_record(self) -> dict[str, float] | None:
+        """The energy correction's entry of metrics.json and of ``denoise``'s report (None: off)."""
+        return None if self.energy_factor is None else {"mean_factor": self.energy_factor}
+
 
 COUNT_BYTES_PER_PIXEL = 4  # count_invalid: one boolean mask of a row block's 3 channels at a time
 

@@ -28,7 +28,7 @@ from imaging.exr_layers import (ALBEDO_WORDS, NORMAL_WORDS, VARIANCE_WORDS, ExrF
 from imaging.metrics import all_metrics
 from imaging.render import half_variance
 from pipeline.denoise import Denoiser
-from pipeline.energy import EnergySettings
+from pipeline.energy import settings_if
 from pipeline.noise_guard import DEFAULT_STRENGTH, strength_for
 
 HALVES_BYTES_PER_PIXEL = 128  # combine_halves: float64 temporaries of the mean and the variance
@@ -155,7 +155,7 @@ def denoise_file(cfg: DenoiseFileConfig) -> dict[str, Any]:
         raise DenoiserError("two halves give the variance: --variance-layer is for a single input")
     denoiser = Denoiser(cfg.model, max_memory_mb=cfg.max_memory_mb, skip_below=cfg.skip_below,
                         precision=cfg.precision, flips=cfg.flips,
-                        energy=EnergySettings() if cfg.energy else None)
+                        energy=settings_if(cfg.energy))
     images = [read_input(p, cfg.layer, cfg.variance_layer) for p in cfg.inputs]
     image = images[0] if len(images) == 1 else combine_halves(*images, max_bytes=denoiser.max_bytes)
     ref = read_input(cfg.reference).rgb if cfg.reference else None
@@ -178,7 +178,7 @@ def denoise_file(cfg: DenoiseFileConfig) -> dict[str, Any]:
         "noise_guard": None if variance is None else {
             "variance": image.variance_layer, "spp": spp, "strength": strength,
             "mean_weight": result.guard_weight},
-        "energy": None if result.energy_factor is None else {"mean_factor": result.energy_factor}}
+        "energy": result.energy_record()}
     if ref is not None:
         out["quality"] = {"noisy": all_metrics(image.rgb, ref), "denoised": all_metrics(result.image, ref)}
     return json_safe(out)

@@ -64,6 +64,12 @@ class EnergySettings:
             raise ValueError(f"significance must be >= 0 and finite, got {self.significance}")
 
 
+def settings_if(on: bool) -> EnergySettings | None:
+    """The default :class:`EnergySettings` where the correction is on, None (off) where not: what a
+    ``--no-energy`` flag or an ``energy`` config field turns into."""
+    return EnergySettings() if on else None
+
+
 def scaled(x: np.ndarray, exposure: float, clamp: float) -> np.ndarray:
     """float32 copy of radiance ``x`` times ``exposure``, clamped to [0, clamp] (NaN -> 0; clamped
     before scaling, so nothing overflows)."""

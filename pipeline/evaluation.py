@@ -29,7 +29,7 @@ from imaging.exr import read_exr
 from imaging.metrics import all_metrics, flip, psnr, relmse
 from imaging.render import DEFAULT_MAX_MEMORY_MB, RenderResult, load_scene, pass_seeds, prepare, render_loaded
 from pipeline.denoise import DenoiseResult, Denoiser
-from pipeline.energy import EnergySettings
+from pipeline.energy import settings_if
 from pipeline.oidn import oidn_denoise
 
 AOVS = ("albedo", "sh_normal")  # what a model with auxiliary inputs needs rendered
@@ -79,7 +79,7 @@ def make_denoiser(model: str | Path | Sequence[str | Path] | None, settings: Ren
     """The denoiser of ``model`` with the settings' memory bound, precision, flips, energy
     correction and, with the halves, skipping."""
     return Denoiser(model, max_memory_mb=settings.max_memory_mb, precision=settings.precision,
-                    flips=settings.flips, energy=EnergySettings() if settings.energy else None,
+                    flips=settings.flips, energy=settings_if(settings.energy),
                     skip_below=settings.skip_below if settings.noise_guard else None)
 
 

@@ -81,8 +81,8 @@ def blend_weight(noisy: np.ndarray, denoised: np.ndarray, variance: np.ndarray,
     finite = np.isfinite(var)
     anywhere_unbounded = not finite.all()
     with np.errstate(invalid="ignore", over="ignore"):
-        positive = np.maximum(var, np.float32(0.0))  # inf or NaN where unbounded: zeroed below
-    np.minimum(positive, np.float32(VALUE_MAX), out=positive)  # window sums stay finite (VALUE_MAX)
+        # within [0, VALUE_MAX] so that the window sums stay finite; NaN where unbounded: zeroed below
+        positive = np.clip(var, np.float32(0.0), np.float32(VALUE_MAX))
     total = channel_sum(positive)
     change = np.subtract(denoised, noisy, dtype=np.float32)
     np.clip(change, np.float32(-CHANGE_MAX), np.float32(CHANGE_MAX), out=change)

@@ -211,7 +211,7 @@ def _metrics(run: _Run) -> dict[str, Any]:
     metrics["noise_guard"] = ({"radius": DEFAULT_RADIUS, "pivot_spp": DEFAULT_PIVOT_SPP,
                                "strength": strength_for(run.spp), "mean_weight": result.guard_weight}
                               if result.guard_weight is not None else None)
-    metrics["energy"] = None if result.energy_factor is None else {"mean_factor": result.energy_factor}
+    metrics["energy"] = result.energy_record()
     if run.plan:
         metrics["budget"] = run.plan.to_dict()
     if run.reference is not None:
