@@ -82,7 +82,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--grad-clip", type=float, help="clip the gradient L2 norm to this (default off)")
     p.add_argument("--init-from", metavar="CKPT",
                    help="start from this checkpoint's weights: the same model (a warm start), or a "
-                        "shallower densenet deepened to the model's layers")
+                        "densenet of other depth (deepened to the model's layers, or its first layers)")
     p.add_argument("--converged-pairs", action="store_const", const=True,
                    help="also train on (reference, reference) pairs: converged input stays unchanged")
     p.add_argument("--lr-decay", type=float, help="LR factor per --lr-decay-every steps (default 0.9)")

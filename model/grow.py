@@ -11,6 +11,12 @@ A checkpoint of the very same model config (e.g. a multi-scale net) is copied as
 (fresh optimiser, schedule and step count) that starts from trained weights. A multi-scale net
 without the full-resolution head (:func:`model.unet.make_head`) is copied into the same net with
 one: the head's last conv is zero, so the grown net, too, starts by computing the source's output.
+
+The other way, a model with fewer layers takes the source's head, its first layers and the tail's
+BatchNorm and conv weights on their channels (:func:`shrink_model`): a prefix of the trained block.
+It computes what the source would with the dropped layers' tail weights set to zero, so it does not
+start at the source's output, but from trained features that fine-tuning adapts the tail to (a
+cheaper network warm-started from a trained one).
 """
 from __future__ import annotations
 
@@ -24,15 +30,19 @@ from model.config import ModelConfig
 _SAME = ("arch", "growth", "init_features", "bottleneck", "transfer", "output", "aux_inputs")
 
 
-def check_growable(source: ModelConfig, target: ModelConfig) -> None:
-    """Raise :class:`ConfigError` unless ``target`` is ``source`` with at least as many layers."""
+def check_growable(source: ModelConfig, target: ModelConfig, shrink: bool = False) -> None:
+    """Raise :class:`ConfigError` unless ``target`` is ``source`` with at least as many layers (with
+    ``shrink``: at most as many, at least one)."""
     if source.arch != "densenet" or target.arch != "densenet":
         raise ConfigError("only densenet models can be grown (plaincnn has no dense block)")
     diff = [f"{k}: {getattr(source, k)!r} vs {getattr(target, k)!r}" for k in _SAME
             if getattr(source, k) != getattr(target, k)]
     if diff:
         raise ConfigError(f"cannot grow the model: it differs from the source in {'; '.join(diff)}")
-    if target.layers < source.layers:
+    if shrink:
+        if not 1 <= target.layers <= source.layers:
+            raise ConfigError(f"cannot shrink {source.layers} layers into {target.layers}")
+    elif target.layers < source.layers:
         raise ConfigError(f"cannot grow {source.layers} layers into {target.layers} (fewer)")
 
 
@@ -40,8 +50,8 @@ def check_growable(source: ModelConfig, target: ModelConfig) -> None:
 def grow_model(target: torch.nn.Module, source: torch.nn.Module) -> None:
     """Overwrite ``target``'s head, first layers and tail with ``source``'s (see module docstring).
 
-    ``target``'s extra layers keep their current (He) init. Raises :class:`ConfigError` if the
-    configs are not growable. Afterwards ``target.eval()(x) == source.eval()(x)`` up to rounding.
+    ``target``'s extra layers keep their current (He) init; a ``target`` with fewer layers is
+    :func:`shrink_model`'s. Raises :class:`ConfigError` if the configs are not growable. Afterwards ``target.eval()(x) == source.eval()(x)`` up to rounding.
     A source with the very same config (any architecture; the noise input's averaging window may
     differ, the weights do not depend on it) is copied whole: a warm start.
     """
@@ -52,6 +62,9 @@ def grow_model(target: torch.nn.Module, source: torch.nn.Module) -> None:
     gains_head = not same.head and dataclasses.replace(same, head=target.config.head) == target.config
     if target.config.multiscale and gains_head:
         target.load_state_dict(source.state_dict(), strict=False)  # all but the new head
+        return
+    if target.config.arch == source.config.arch == "densenet" and target.config.layers < source.config.layers:
+        shrink_model(target, source)
         return
     check_growable(source.config, target.config)
     src_layers = len(source.body.layers)
@@ -68,3 +81,22 @@ def grow_model(target: torch.nn.Module, source: torch.nn.Module) -> None:
     conv = target.tail[-1].weight
     conv.zero_()
     conv[:, :c_src] = source.tail[-1].weight
+
+
+@torch.no_grad()
+def shrink_model(target: torch.nn.Module, source: torch.nn.Module) -> None:
+    """Overwrite ``target`` with ``source``'s head, its first ``target``'s-count layers and the tail's
+    weights on their channels (see module docstring). Raises :class:`ConfigError` unless ``target``
+    is ``source`` with fewer (at least one) layers."""
+    check_growable(source.config, target.config, shrink=True)
+    copied = ("head.", *(f"body.layers.{i}." for i in range(len(target.body.layers))))
+    target_state = target.state_dict()
+    for key, value in source.state_dict().items():
+        if key.startswith(copied):
+            target_state[key].copy_(value)
+    c_dst = target.body.out_channels
+    src_bn, dst_bn = source.tail[0], target.tail[0]
+    for name in ("weight", "bias", "running_mean", "running_var"):
+        getattr(dst_bn, name).copy_(getattr(src_bn, name)[:c_dst])
+    dst_bn.num_batches_tracked.copy_(src_bn.num_batches_tracked)
+    target.tail[-1].weight.copy_(source.tail[-1].weight[:, :c_dst])

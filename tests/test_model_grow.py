@@ -58,13 +58,31 @@ def test_new_layers_receive_gradient(rng) -> None:
     assert float(target.tail[-1].weight.grad[:, source.body.out_channels:].abs().max()) > 0
 
 
+def test_a_shrunk_model_is_the_source_without_its_last_layers(rng) -> None:
+    source = _trained_like(ModelConfig(layers=5, growth=4, init_features=8, transfer="pu"), seed=4)
+    target = build_model(SMALL)  # 2 layers
+    grow_model(target, source)
+    target.eval()
+    x = torch.from_numpy(rng.uniform(0, 1, (2, 3, 19, 23)).astype("float32"))
+    c_dst = target.body.out_channels
+    with torch.no_grad():
+        assert not torch.allclose(target(x), source(x), atol=1e-3)  # the dropped layers mattered
+        source.tail[-1].weight[:, c_dst:] = 0.0  # what the source computes without them
+        assert torch.allclose(target(x), source(x), rtol=1e-5, atol=1e-6)
+    assert torch.equal(target.body.layers[1].body[2].weight, source.body.layers[1].body[2].weight)
+
+
 @pytest.mark.parametrize("change", [{"growth": 5}, {"init_features": 9}, {"transfer": "log"},
-                                    {"output": "direct"}, {"layers": 1}, {"arch": "plaincnn"}])
+                                    {"output": "direct"}, {"arch": "plaincnn"}])
 def test_incompatible_models_are_refused(change: dict) -> None:
     source = build_model(SMALL)
     fields = {**SMALL.to_dict(), "layers": 4, **change}
     with pytest.raises(ConfigError, match="grow"):
         grow_model(build_model(ModelConfig(**fields)), source)
+    if "arch" not in change:  # the same differences are refused for a shallower target
+        with pytest.raises(ConfigError, match="shrink|grow"):
+            grow_model(build_model(ModelConfig(**{**fields, "layers": 1})), _trained_like(
+                ModelConfig(**{**SMALL.to_dict(), "layers": 3}), seed=5))
 
 
 def test_train_init_from_starts_at_the_source(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
