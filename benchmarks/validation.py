@@ -117,7 +117,7 @@ def build_parser() -> OneLineParser:
     p = OneLineParser(prog="python -m benchmarks.validation", description=__doc__.splitlines()[0])
     p.add_argument("--data", type=Path, action="append", required=True,
                    help="dataset folder (repeatable): its 'val' scenes are scored")
-    members = tuple(spp_range(m)[0] for m in DEFAULT_MODEL)  # each on every spp, without its range
+    members = tuple(dict.fromkeys(spp_range(m)[0] for m in DEFAULT_MODEL))  # each once, on every spp
     p.add_argument("--models", type=name_list, default=members,
                    help="comma-separated presets, checkpoints or NAME=CHECKPOINT, each scored alone "
                         f"(default: the default ensemble's members, {','.join(members)})")

@@ -11,13 +11,16 @@ benchmarks.evaluate --precisions float32,bfloat16``) the noise-input u-balanced 
 (31.59 / 34.90 / 39.14 against 31.59 / 34.91 / 39.15 dB at 4 / 16 / 128 spp) but the flat
 ``fast`` lost 0.5 dB at 128 spp (40.86 against 41.36; its full-resolution features carry small
 corrections that bfloat16 rounds away). That loss is the clean renders': a flat net that only runs
-on renders of at most :data:`FLAT_BF16_MAX_SPP` spp (an ensemble member limited so, ``MODEL:-8``, or a
-checkpoint trained on them) computes in bfloat16 under ``auto`` too, where the render's own noise is
-far above the rounding: the default with its flat low-spp member in bfloat16 scored 29.11 / 31.05 /
-32.95 / 34.83 dB at 1 / 2 / 4 / 8 spp against 29.10 / 31.04 / 32.94 / 34.83 in float32, at 0.57-0.61x
-the denoise time (``python -m benchmarks.evaluate --precisions auto,bfloat16 --spp 1,2,4,8,16``,
-2026-12-04; 16 spp, where `fast` runs in it too: 36.58 against 36.63). Its speed:
-``benchmarks/inference.py`` (docs/speed.md).
+on renders of at most :data:`FLAT_BF16_MAX_SPP` spp (an ensemble member limited so, ``MODEL:-16``,
+or a checkpoint trained on them) computes in bfloat16 under ``auto`` too, where the render's own
+noise is far above the rounding. The default with its flat members so (``fast-lowspp:-8``,
+``fast:9-16``) scored 29.11 / 31.05 / 32.95 / 34.83 dB at 1 / 2 / 4 / 8 spp against 29.10 / 31.04 /
+32.94 / 34.83 in float32, at 0.57-0.61x the denoise time (``python -m benchmarks.evaluate
+--precisions auto,bfloat16 --spp 1,2,4,8,16``, 2026-12-04), and 35.84 / 36.58 at 12 / 16 spp against
+35.88 / 36.63 at 0.55x (2026-12-05, the same at ``--spp 12,16``; worst scene -0.26 dB, FLIP and
+relMSE equal): 0.05 dB is about 2% more samples at 16 spp, which at these renders' cost is a tenth of
+the denoise time saved, so at equal time the bfloat16 default is ahead. Above 16 spp the flat nets
+stay in float32. Its speed: ``benchmarks/inference.py`` (docs/speed.md).
 """
 from __future__ import annotations
 
@@ -29,7 +32,7 @@ if TYPE_CHECKING:
 
 PRECISIONS = ("auto", "float32", "bfloat16")
 NATIVE_BF16_FLAGS = frozenset({"amx_bf16", "avx512_bf16"})
-FLAT_BF16_MAX_SPP = 8  # auto: a flat net limited to renders of at most this many spp computes in bfloat16
+FLAT_BF16_MAX_SPP = 16  # auto: a flat net limited to renders of at most this many spp computes in bfloat16
 
 
 def cpu_flags(cpuinfo: str | Path = "/proc/cpuinfo") -> frozenset[str]:

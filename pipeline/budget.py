@@ -45,7 +45,7 @@ MAX_SPP = 1 << 16
 # `u-high-lowspp`'s place (FASTER_DEFAULT) 0.01-0.06 dB under it at 1-16 spp for 0.64-0.68x its time
 # (docs/training.md), above `fast` and, at 1-8 spp, faster; the shipped `fast` is level with
 # `balanced` at 16 spp and ahead at 128 spp, `high` last — and `fast` is the cheapest of the flat presets.
-FASTER_DEFAULT = "fast:9-+fast-lowspp:-8+u-balanced-lowspp+u-high:17-"
+FASTER_DEFAULT = "fast:17-+fast:9-16+fast-lowspp:-8+u-balanced-lowspp+u-high:17-"
 PRESET_ORDER = (SEPARATOR.join(DEFAULT_MODEL), FASTER_DEFAULT, "fast", "balanced", "high")
 DEFAULT_CURVES = WEIGHTS_DIR / "tradeoff.json"
 
@@ -190,7 +190,7 @@ def denoise_seconds(denoiser: Denoiser, height: int, width: int, side: int = 128
     """Predicted seconds to denoise an HxW image: timed runs on (side/2)^2 and side^2 images give
     a cost per call and per window pixel, applied to the real image's tiles. An ensemble is
     predicted so in every spp range where a different set of its members runs (:func:`probe_spps`;
-    their formats differ too: the default's flat member is in bfloat16 up to 8 spp only) and the
+    their formats differ too: the default's flat member is in bfloat16 up to 16 spp only) and the
     dearest prediction is taken, whatever spp the plan then chooses."""
     side = max(16, min(side, max(height, width)))
     img = np.random.default_rng(0).random((side, side, 3), dtype=np.float32)

@@ -31,8 +31,9 @@ if TYPE_CHECKING:
 WEIGHTS_DIR = Path(__file__).resolve().parents[1] / "model" / "weights"
 # The model when none is named: an ensemble of shipped checkpoints, two networks at any known spp
 # (fast-lowspp + u-high-lowspp up to 8 spp, fast + u-high-lowspp at 9-16, fast + u-high above);
-# fast, the first, alone where the spp is unknown (docs/scoreboard.md, "The default").
-DEFAULT_MODEL = ("fast:9-", "fast-lowspp:-8", "u-high-lowspp", "u-high:17-")
+# fast, the first, alone where the spp is unknown (docs/scoreboard.md, "The default"). `fast` is two
+# members: limited to 9-16 spp it computes in bfloat16 under `auto` (model/precision.py), above in float32.
+DEFAULT_MODEL = ("fast:17-", "fast:9-16", "fast-lowspp:-8", "u-high-lowspp", "u-high:17-")
 DEFAULT_MAX_MEMORY_MB = 1024
 
 

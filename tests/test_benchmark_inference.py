@@ -14,7 +14,7 @@ def test_default_is_the_shipped_ensemble_with_its_spp_ranges(tmp_path: Path) -> 
     spec = str(_checkpoint("default", tmp_path))
     members = ensemble_members(spec)
     assert members == shipped_members(SEPARATOR.join(DEFAULT_MODEL))
-    assert members[0] == f"{WEIGHTS_DIR / 'fast'}.ckpt:9-" and members[-1] == f"{WEIGHTS_DIR / 'u-high'}.ckpt:17-"
+    assert members[0] == f"{WEIGHTS_DIR / 'fast'}.ckpt:17-" and members[-1] == f"{WEIGHTS_DIR / 'u-high'}.ckpt:17-"
     assert not list(tmp_path.iterdir())  # real weights: nothing written
 
 

@@ -43,7 +43,7 @@ def test_flags_and_native_bfloat16(tmp_path: Path) -> None:
     assert cpu_flags(tmp_path / "missing") == frozenset() and not native_bfloat16(tmp_path / "missing")
     assert compute_dtype("auto", True, amx) == torch.bfloat16
     assert compute_dtype("auto", False, amx) == torch.float32  # flat nets lose 0.5 dB in bfloat16
-    # ... at 128 spp; one that only runs on renders of <= 8 spp loses nothing (module docstring)
+    # ... at 128 spp; one that only runs on renders of <= 16 spp at most 0.05 dB (module docstring)
     assert compute_dtype("auto", False, amx, max_spp=FLAT_BF16_MAX_SPP) == torch.bfloat16
     assert compute_dtype("auto", False, amx, max_spp=FLAT_BF16_MAX_SPP + 1) == torch.float32
     assert compute_dtype("auto", False, plain, max_spp=4) == torch.float32
@@ -117,7 +117,7 @@ def test_denoise_cli_refuses_an_unknown_precision(tmp_path: Path, capsys: pytest
 
 
 def test_auto_gives_a_flat_low_spp_member_bfloat16_where_native(tmp_path: Path) -> None:
-    # An ensemble of the same flat checkpoint at <= 8 spp and above: under auto only the first
+    # An ensemble of the same flat checkpoint at <= FLAT_BF16_MAX_SPP spp and above: under auto only the first
     # computes in bfloat16, and only on a CPU with native bfloat16 (what this machine has).
     path = tmp_path / "flat.ckpt"
     save_checkpoint(path, _models()[0], step=0)
@@ -125,3 +125,13 @@ def test_auto_gives_a_flat_low_spp_member_bfloat16_where_native(tmp_path: Path) 
     assert low.precision == ("bfloat16" if native_bfloat16() else "float32")
     assert high.precision == "float32"
     assert Denoiser(f"{path}:-4", precision="float32").members[0].precision == "float32"
+
+
+def test_the_default_runs_its_flat_net_in_bfloat16_up_to_16_spp_only() -> None:
+    bf16 = "bfloat16" if native_bfloat16() else "float32"
+    default = Denoiser()
+    assert {m.label: m.precision for m in default.members} == {
+        "fast:17-": "float32", "fast:9-16": bf16, "fast-lowspp:-8": bf16, "u-high-lowspp": bf16, "u-high:17-": bf16}
+    assert [m.label for m in default.active(12)] == ["fast:9-16", "u-high-lowspp"]
+    assert [m.label for m in default.active(17)] == ["fast:17-", "u-high:17-"]
+    assert [m.label for m in default.active(None)] == ["fast:17-"]  # the spp unknown: fast in float32
