@@ -67,20 +67,8 @@ def grow_model(target: torch.nn.Module, source: torch.nn.Module) -> None:
         shrink_model(target, source)
         return
     check_growable(source.config, target.config)
-    src_layers = len(source.body.layers)
-    copied = ("head.", *(f"body.layers.{i}." for i in range(src_layers)))
-    target_state = target.state_dict()
-    for key, value in source.state_dict().items():
-        if key.startswith(copied):
-            target_state[key].copy_(value)
-    c_src = source.body.out_channels
-    src_bn, dst_bn = source.tail[0], target.tail[0]
-    for name in ("weight", "bias", "running_mean", "running_var"):
-        getattr(dst_bn, name)[:c_src] = getattr(src_bn, name)
-    dst_bn.num_batches_tracked.copy_(src_bn.num_batches_tracked)
-    conv = target.tail[-1].weight
-    conv.zero_()
-    conv[:, :c_src] = source.tail[-1].weight
+    target.tail[-1].weight.zero_()  # the new layers' outputs start unused
+    _copy_prefix(target, source, len(source.body.layers))
 
 
 @torch.no_grad()
@@ -89,14 +77,20 @@ def shrink_model(target: torch.nn.Module, source: torch.nn.Module) -> None:
     weights on their channels (see module docstring). Raises :class:`ConfigError` unless ``target``
     is ``source`` with fewer (at least one) layers."""
     check_growable(source.config, target.config, shrink=True)
-    copied = ("head.", *(f"body.layers.{i}." for i in range(len(target.body.layers))))
+    _copy_prefix(target, source, len(target.body.layers))
+
+
+def _copy_prefix(target: torch.nn.Module, source: torch.nn.Module, layers: int) -> None:
+    """Copy ``source``'s head, its first ``layers`` dense layers, and its tail's BatchNorm and conv
+    weights on the channels those produce, into the same places of ``target``."""
+    copied = ("head.", *(f"body.layers.{i}." for i in range(layers)))
     target_state = target.state_dict()
     for key, value in source.state_dict().items():
         if key.startswith(copied):
             target_state[key].copy_(value)
-    c_dst = target.body.out_channels
+    c = min(source.body.out_channels, target.body.out_channels)
     src_bn, dst_bn = source.tail[0], target.tail[0]
     for name in ("weight", "bias", "running_mean", "running_var"):
-        getattr(dst_bn, name).copy_(getattr(src_bn, name)[:c_dst])
+        getattr(dst_bn, name)[:c] = getattr(src_bn, name)[:c]
     dst_bn.num_batches_tracked.copy_(src_bn.num_batches_tracked)
-    target.tail[-1].weight.copy_(source.tail[-1].weight[:, :c_dst])
+    target.tail[-1].weight[:, :c] = source.tail[-1].weight[:, :c]
