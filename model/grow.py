@@ -50,8 +50,9 @@ def check_growable(source: ModelConfig, target: ModelConfig, shrink: bool = Fals
 def grow_model(target: torch.nn.Module, source: torch.nn.Module) -> None:
     """Overwrite ``target``'s head, first layers and tail with ``source``'s (see module docstring).
 
-    ``target``'s extra layers keep their current (He) init; a ``target`` with fewer layers is
-    :func:`shrink_model`'s. Raises :class:`ConfigError` if the configs are not growable. Afterwards ``target.eval()(x) == source.eval()(x)`` up to rounding.
+    ``target``'s extra layers keep their current (He) init. Raises :class:`ConfigError` if the
+    configs are not growable. Afterwards ``target.eval()(x) == source.eval()(x)`` up to rounding.
+    A ``target`` with fewer layers is :func:`shrink_model`'s (its output is not the source's).
     A source with the very same config (any architecture; the noise input's averaging window may
     differ, the weights do not depend on it) is copied whole: a warm start.
     """

@@ -46,8 +46,9 @@ class TrainConfig:
     ``steps``: total optimiser steps of the run (a resumed run continues up to it); intervals
     (``log_every``, ``val_every``, ``ckpt_every``) are in steps, 0 disables validation.
     ``lr_warmup``: steps over which the LR ramps up linearly from lr/lr_warmup (0: none).
-    ``init_from``: checkpoint of the same model, or of a densenet with other depth (same growth, width,
-    transfer, output; deepened, or its first layers taken), whose weights start a new run (:mod:`model.grow`); the optimiser and step start afresh.
+    ``init_from``: checkpoint of the same model, or of a densenet with other depth (same growth,
+    width, transfer, output; deepened, or its first layers taken), whose weights start a new run
+    (:mod:`model.grow`); the optimiser and step start afresh.
     ``lr_cosine_steps`` > 0: cosine decay of the LR to ``lr_final * lr`` over that many steps
     instead of the step schedule (``lr_decay``/``lr_decay_every`` then unused).
     ``noise_dropout``: for a model with ``noise_input``, the share of patches whose noise
