@@ -25,7 +25,7 @@ from imaging.usage import OneLineParser
 from model.config import ARCHS, PRESETS, ModelConfig, preset
 from model.distributed import RankInfo, ddp_config, launch, rank_from_env, train_distributed
 from model.train import resume_config, train
-from model.train_config import RESUMABLE_OVERRIDES, TrainConfig
+from model.train_config import LOSS_NORMS, LOSS_SPACES, RESUMABLE_OVERRIDES, TrainConfig
 
 _FLAGS = {  # argparse dest -> TrainConfig field
     "data": "data", "steps": "steps", "batch": "batch", "lr": "lr", "grad_clip": "grad_clip", "seed": "seed",
@@ -99,10 +99,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--ms-ssim-weight", type=float,
                    help="share of 1 - MS-SSIM in the loss (0.84 with --gradient-weight 0: the L1 + MS-SSIM mix "
                         "of Zhao et al. and OIDN; default 0 = off, the paper's loss)")
-    p.add_argument("--loss-norm", choices=("l1", "l2"),
+    p.add_argument("--loss-norm", choices=tuple(LOSS_NORMS),
                    help="per-value error of both loss terms: l1 (default, the paper's: each pixel's median) "
                         "or l2 (squared: its mean, which PSNR rewards)")
-    p.add_argument("--loss-space", choices=("transfer", "display"),
+    p.add_argument("--loss-space", choices=LOSS_SPACES,
                    help="where the loss compares images: transfer (default, the network's space) or display "
                         "(the metrics' tonemap, where PSNR is measured)")
     p.add_argument("--max-scenes", type=int, help="use only the datasets' scenes with index below this")

@@ -45,7 +45,7 @@ MAX_SPP = 1 << 16
 # `u-high-lowspp`'s place (FASTER_DEFAULT) 0.01-0.06 dB under it at 1-16 spp for 0.64-0.68x its time
 # (docs/training.md), above `fast` and, at 1-8 spp, faster; the shipped `fast` is level with
 # `balanced` at 16 spp and ahead at 128 spp, `high` last — and `fast` is the cheapest of the flat presets.
-FASTER_DEFAULT = "fast:17-+fast:9-16+fast-lowspp:-8+u-balanced-lowspp+u-high:17-"
+FASTER_DEFAULT = SEPARATOR.join("u-balanced-lowspp" if m == "u-high-lowspp" else m for m in DEFAULT_MODEL)
 PRESET_ORDER = (SEPARATOR.join(DEFAULT_MODEL), FASTER_DEFAULT, "fast", "balanced", "high")
 DEFAULT_CURVES = WEIGHTS_DIR / "tradeoff.json"
 
