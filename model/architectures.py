@@ -101,9 +101,13 @@ def _unet_live_channels(config: ModelConfig) -> float:
         kept = plan.width[:n] + [plan.width[n]]  # the encoder outputs kept for the skips, the bottom
         busy = [2 * plan.width[i] * 3 + plan.mid[i] for i in range(n + 1)]  # upsampled, concatenated, x, clamp
     buffers = sum(c * s for c, s in zip(kept, share))
-    temporaries = max(max(b * s for b, s in zip(busy, share)),
-                      (kept[0] + 24) * share[0] + 6)  # the tail: BN-ReLU copy, two 12-channel convs, output
+    taps = config.kernel ** 2 - 1 if config.kernel else 0  # the predicted filter's coefficients per pixel
+    temporaries = max(max(b * s for b, s in zip(busy, share)),  # the tail: BN-ReLU copy, two 12-channel
+                      (kept[0] + 24 + 4 * taps) * share[0] + 6)  # convs, the coefficients, output
     # the head: the output, its input (output and network input, concatenated and a channels_last
     # copy), its hidden channels and its output, beside the network input and the output
     head = cimg + config.in_channels + 3 + 2 * (3 + config.in_channels) + config.head + 3 if config.head else 0
-    return max(inputs, base + buffers + temporaries, head)
+    # the filter: the output, its coefficients at half and full resolution, the edge-padded RGB, the
+    # sum and its two temporaries, the coefficients' sum
+    kernel = base + 3 + taps * (1 + share[0] * 4) + 3 + 3 + 6 + 1 if taps else 0
+    return max(inputs, base + buffers + temporaries, head, kernel)

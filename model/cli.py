@@ -41,7 +41,7 @@ _FLAGS = {  # argparse dest -> TrainConfig field
     "loss_norm": "loss_norm", "loss_space": "loss_space",
 }
 _MODEL_FLAGS = ("arch", "transfer", "output", "aux_inputs", "noise_input", "noise_radius", "levels", "layers",
-                "growth", "init_features", "head")
+                "growth", "init_features", "head", "kernel")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -59,6 +59,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--levels", type=int, help="multi-scale archs: resolutions below the half-resolution stem")
     p.add_argument("--head", type=int,
                    help="multi-scale archs: channels of a full-resolution refinement head (0: none)")
+    p.add_argument("--kernel", type=int,
+                   help="multi-scale archs: size k (odd) of a predicted per-pixel k x k filter of the input (0: none)")
     p.add_argument("--layers", type=int, help="dense layers (flat: in the block; multi-scale: per block)")
     p.add_argument("--growth", type=int, help="growth rate k")
     p.add_argument("--width", dest="init_features", type=int, help="channels of the first conv / stem")

@@ -29,6 +29,7 @@ ARCHS = ("densenet", "plaincnn", "dense_unet", "plain_unet")
 FLAT_ARCHS = ("densenet", "plaincnn")
 UNET_ARCHS = ("dense_unet", "plain_unet")
 MAX_LEVELS = 6
+MAX_KERNEL = 15  # the predicted filter of the multi-scale archs (ModelConfig.kernel)
 NOISE_CHANNELS = 4  # transfer-space noise std per RGB channel + "the noise is known" flag
 OUTPUTS = ("residual", "direct")
 TRANSFERS = ("log", "pu")
@@ -55,7 +56,9 @@ class ModelConfig:
     2*levels+1 blocks, ``init_features`` is the stem's width and ``growth`` the growth rate at
     half resolution (:mod:`model.unet` says how widths grow with depth). ``head``: multi-scale
     archs only, channels of a full-resolution refinement head after the encoder/decoder (two 3x3
-    convs on its output and the network input, :mod:`model.unet`); 0 for none.
+    convs on its output and the network input, :mod:`model.unet`); 0 for none. ``kernel``: multi-scale
+    archs with residual output only, the odd size k of a per-pixel filter the network predicts and
+    applies to the input RGB at full resolution (:func:`model.unet.apply_kernel`); 0 for none.
     Defaults: the paper's sizes, log transfer, residual output (the network predicts only the
     correction, which starts near the identity).
     """
@@ -72,6 +75,7 @@ class ModelConfig:
     noise_input: bool = False
     noise_radius: int = 0
     head: int = 0
+    kernel: int = 0
 
     def __post_init__(self) -> None:
         if self.arch not in ARCHS:
@@ -100,6 +104,11 @@ class ModelConfig:
             raise ConfigError(f"model head must be an integer in 0..256, got {self.head!r}")
         if self.arch in FLAT_ARCHS and self.head:
             raise ConfigError(f"model head must be 0 for the flat {self.arch} (it already runs at full resolution)")
+        if not isinstance(self.kernel, int) or isinstance(self.kernel, bool) \
+                or not (self.kernel == 0 or (3 <= self.kernel <= MAX_KERNEL and self.kernel % 2)):
+            raise ConfigError(f"model kernel must be 0 or an odd integer in 3..{MAX_KERNEL}, got {self.kernel!r}")
+        if self.kernel and (not self.multiscale or self.output != "residual" or self.head):
+            raise ConfigError("model kernel needs a multi-scale arch with residual output and no head")
 
     @property
     def multiscale(self) -> bool:

@@ -10,7 +10,8 @@ of from the identity. The residual model's zero-initialised last conv works the 
 A checkpoint of the very same model config (e.g. a multi-scale net) is copied as it is: a new run
 (fresh optimiser, schedule and step count) that starts from trained weights. A multi-scale net
 without the full-resolution head (:func:`model.unet.make_head`) is copied into the same net with
-one: the head's last conv is zero, so the grown net, too, starts by computing the source's output.
+one, or with the predicted filter (``ModelConfig.kernel``): the head's last conv and the filter's
+coefficients start at zero, so the grown net, too, starts by computing the source's output.
 
 The other way, a model with fewer layers takes the source's head, its first layers and the tail's
 BatchNorm and conv weights on their channels (:func:`shrink_model`): a prefix of the trained block.
@@ -60,9 +61,10 @@ def grow_model(target: torch.nn.Module, source: torch.nn.Module) -> None:
     if same == target.config:
         target.load_state_dict(source.state_dict(), strict=True)
         return
-    gains_head = not same.head and dataclasses.replace(same, head=target.config.head) == target.config
-    if target.config.multiscale and gains_head:
-        target.load_state_dict(source.state_dict(), strict=False)  # all but the new head
+    gains_output = not same.head and not same.kernel \
+        and dataclasses.replace(same, head=target.config.head, kernel=target.config.kernel) == target.config
+    if target.config.multiscale and gains_output:
+        target.load_state_dict(source.state_dict(), strict=False)  # all but the new head or filter
         return
     if target.config.arch == source.config.arch == "densenet" and target.config.layers < source.config.layers:
         shrink_model(target, source)

@@ -19,6 +19,9 @@ encoder/decoder shape allows:
 * **One scratch for the clamps** (:func:`model.inference_net.scratch_view`): every clamp of a
   forward pass, and the tail's affine map, write into one flat buffer sized for the largest.
 * **The full-resolution head** (``head`` > 0) runs as two plain convs on channels_last input.
+* **The predicted filter** (``kernel`` > 0): its coefficients' conv1x1 reads the tail's BN-ReLU
+  output like the tail, writes block-major like it, and the filter runs in float32
+  (:func:`model.unet.apply_kernel`).
 * **Optionally bfloat16** (``dtype``, :mod:`model.precision`): weights and activations; the input
   is built and the residual added in float32.
 * **Unshuffle and shuffle as strided copies.** The network input (RGB, its gradients, the rest)
@@ -41,7 +44,7 @@ from torch.nn import functional as F
 
 from model.config import ModelConfig
 from model.inference_net import _AffineReLU, _ClampConv1x1, _Conv, bn_affine, fold_conv_bn, padded_input
-from model.unet import Block, MultiScaleDenoiser, alignment
+from model.unet import Block, MultiScaleDenoiser, alignment, apply_kernel
 
 
 class _FoldedBlock(nn.Module):
@@ -102,12 +105,13 @@ def unshuffled_input(image: torch.Tensor, align: int, dtype: torch.dtype) -> tup
 
 
 def shuffled_output(y: torch.Tensor, h: int, w: int) -> torch.Tensor:
-    """The 2x2 pixel-shuffle of an Nx12x(h2)x(w2) tensor whose channels are in :func:`shuffle_order`
-    (3 colours), as float32, cropped to ``h`` x ``w``: an Nx3xhxw channels_last tensor."""
-    n, _, h2, w2 = y.shape
-    full = torch.empty(n, 2 * h2, 2 * w2, 3)
-    blocks = y.permute(0, 2, 3, 1).reshape(n, h2, w2, 2, 2, 3)
-    full.view(n, h2, 2, w2, 2, 3).copy_(blocks.permute(0, 1, 3, 2, 4, 5))
+    """The 2x2 pixel-shuffle of an Nx4Cx(h2)x(w2) tensor whose channels are in :func:`shuffle_order`
+    (C channels, 3 for the colours), as float32, cropped to ``h`` x ``w``: an NxCxhxw channels_last tensor."""
+    n, c4, h2, w2 = y.shape
+    c = c4 // 4
+    full = torch.empty(n, 2 * h2, 2 * w2, c)
+    blocks = y.permute(0, 2, 3, 1).reshape(n, h2, w2, 2, 2, c)
+    full.view(n, h2, 2, w2, 2, c).copy_(blocks.permute(0, 1, 3, 2, 4, 5))
     return full[:, :h, :w].permute(0, 3, 1, 2)
 
 
@@ -157,6 +161,11 @@ class InferenceUNet(nn.Module):
                 scale, shift, tail_weight = scale[orders[0]], shift[orders[0]], tail_weight[:, orders[0]]
             self.tail_pre = _AffineReLU(scale, shift)
             self.tail = _Conv(tail_weight[order_out], None, relu=False)
+            self.kernel = None
+            if model.kernel is not None:
+                order_k = shuffle_order(model.kernel.out_channels // 4)
+                weight = model.kernel.weight.detach()[:, orders[0]] if self.dense else model.kernel.weight.detach()
+                self.kernel = _Conv(weight[order_k].clone(), model.kernel.bias.detach()[order_k].clone(), relu=False)
             self.skip = _Conv(model.skip.weight.detach()[order_out][:, order_in].clone(),
                               model.skip.bias.detach()[order_out].clone(), relu=False)
             self.head = None if model.head is None else nn.Sequential(
@@ -223,9 +232,13 @@ class InferenceUNet(nn.Module):
         x = self._bottom(x, scratch)
         for i in reversed(range(len(levels))):
             x = self._decode(x, levels[i], i, scratch)
-        y = self.tail(self.tail_pre(x, scratch))
+        features = self.tail_pre(x, scratch)
+        y = self.tail(features)
+        coefficients = None if self.kernel is None else self.kernel(features)
         y += self.skip(raw)
         out = shuffled_output(y, h, w)
+        if coefficients is not None:
+            out = out + apply_kernel(image[:, :3], shuffled_output(coefficients, h, w), self.config.kernel)
         out = out + image[:, :3] if self.config.output == "residual" else out
         if self.head is None:
             return out

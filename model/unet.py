@@ -16,6 +16,12 @@ Tiramisu") and of OIDN's U-Net, built so that nothing heavy runs at full resolut
     -> with ``head`` > 0, a full-resolution refinement: conv3x3 of [that output, the network input]
        -> ``head`` channels -> ReLU -> conv3x3 -> 3, added to it (the only nonlinearity at full
        resolution; its last conv starts at zero, so it starts as the network without it)
+    -> with ``kernel`` k > 0, a predicted filter: a conv1x1 of the tail's BN-ReLU features gives,
+       per full-resolution pixel p (pixel-shuffled like the output), k*k - 1 coefficients a_o, and
+       sum_o a_o(p) (x(p + o) - x(p)) over the k x k neighbours o of p is added to the output, x the
+       input RGB: a per-pixel filter of the input whose weights sum to 1 (kernel-predicting
+       denoisers, Bako et al. 2017, without their softmax, so that it starts at zero: the
+       coefficients' conv starts at zero and the network starts as the one without it)
 
 A *block* is ``layers`` of the paper's bottleneck layers (BN-ReLU-Conv1x1-BN-ReLU-Conv3x3), their
 outputs concatenated (``dense_unet``), or, for the science table's plain network
@@ -146,6 +152,11 @@ class MultiScaleDenoiser(nn.Module):
             nn.init.zeros_(self.skip.weight)
         nn.init.zeros_(self.skip.bias)
         self.head = make_head(config)
+        self.kernel = None
+        if config.kernel:
+            self.kernel = nn.Conv2d(below, 4 * (config.kernel ** 2 - 1), 1, bias=True)
+            nn.init.zeros_(self.kernel.weight)
+            nn.init.zeros_(self.kernel.bias)
 
     def forward(self, image: torch.Tensor) -> torch.Tensor:
         h, w = image.shape[-2:]
@@ -160,10 +171,37 @@ class MultiScaleDenoiser(nn.Module):
         x = self.bottom(x)
         for up, dec in zip(self.up, self.dec):
             x = dec(torch.cat([F.interpolate(up(x), scale_factor=2.0, mode="nearest"), skips.pop()], dim=1))
-        x = self.tail(F.relu(self.tail_bn(x))) + self.skip(raw)
+        features = F.relu(self.tail_bn(x))
+        x = self.tail(features) + self.skip(raw)
         out = F.pixel_shuffle(x, 2)[..., :h, :w]
+        if self.kernel is not None:
+            coefficients = F.pixel_shuffle(self.kernel(features), 2)[..., :h, :w]
+            out = out + apply_kernel(image[:, :3], coefficients, self.config.kernel)
         out = out + image[:, :3] if self.config.output == "residual" else out
         return out if self.head is None else out + self.head(torch.cat([out, net_in], dim=1))
+
+
+def kernel_offsets(size: int) -> list[tuple[int, int]]:
+    """The (dy, dx) neighbours of a size x size filter's centre, centre excluded, row-major: the
+    order of :func:`apply_kernel`'s coefficient channels."""
+    r = size // 2
+    return [(dy, dx) for dy in range(-r, r + 1) for dx in range(-r, r + 1) if dy or dx]
+
+
+def apply_kernel(rgb: torch.Tensor, coefficients: torch.Tensor, size: int) -> torch.Tensor:
+    """``sum_o coefficients[:, j] * (rgb(p + o) - rgb(p))`` over the :func:`kernel_offsets` o (j their
+    index): NxCxHxW ``rgb``, Nx(size^2 - 1)xHxW ``coefficients`` (one filter for all channels);
+    pixels beyond the edge repeat the edge's. Float32 whatever the coefficients' dtype."""
+    r = size // 2
+    h, w = rgb.shape[-2:]
+    rows = (torch.arange(-r, h + r).clamp(0, h - 1))
+    cols = (torch.arange(-r, w + r).clamp(0, w - 1))
+    padded = rgb[..., rows, :][..., cols]
+    a = coefficients.float()
+    total = torch.zeros_like(rgb)
+    for j, (dy, dx) in enumerate(kernel_offsets(size)):
+        total = total + a[:, j:j + 1] * padded[..., r + dy:r + dy + h, r + dx:r + dx + w]
+    return total - a.sum(dim=1, keepdim=True) * rgb
 
 
 def make_head(config: ModelConfig) -> nn.Sequential | None:
@@ -210,7 +248,8 @@ def receptive_radius(config: ModelConfig) -> int:
         r += jump  # nearest upsampling cell
         r += config.layers * jump
     r += jump + 1  # tail / skip conv3x3 at half resolution, pixel-shuffle cell
-    return r + 2 if config.head else r  # the head's two conv3x3 at full resolution
+    r = r + 2 if config.head else r  # the head's two conv3x3 at full resolution
+    return max(r, config.kernel // 2)  # the predicted filter reads its k x k neighbours
 
 
 def conv_macs_per_pixel(model: nn.Module, height: int = 64, width: int = 64) -> float:
@@ -272,6 +311,7 @@ def macs_per_pixel(config: ModelConfig, plain_scale: float | None = None, pool_f
         macs, below = block(w[i] + enc_out[i], i)
         total += macs
     total += 9 * (below + cin4) * 12 * share[0]
+    total += below * 4 * max(config.kernel ** 2 - 1, 0) * share[0]  # the filter's coefficients
     return total + 9 * (3 + config.in_channels + 3) * config.head
 
 

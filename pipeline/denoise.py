@@ -281,8 +281,9 @@ class Denoiser:
 
     @property
     def name(self) -> str:
-        """The checkpoint's file name; an ensemble's joined by ``+``."""
-        return SEPARATOR.join(m.path.name for m in self.members)
+        """The checkpoint's file name; an ensemble's joined by ``+``, each with the spp range its
+        spec limits it to (``fast.ckpt:17-+fast.ckpt:9-16+...``: a file named twice reads apart)."""
+        return SEPARATOR.join(m.path.name + range_suffix(*m.limit) for m in self.members)
 
     @property
     def label(self) -> str:

@@ -124,6 +124,8 @@ def test_ensemble_denoiser_combines_its_members_outputs(two_models: tuple[Path, 
         np.testing.assert_allclose(got.network, expected, rtol=1e-4, atol=1e-5)
         assert got.image.shape == noisy.shape and np.isfinite(got.image).all()
     assert ens.name == "flat.ckpt+unet.ckpt" and ens.label == "flat+unet" and len(ens.members) == 2
+    limited = Denoiser(f"{flat}:9-16+{flat}:17-+{unet}")
+    assert limited.name == "flat.ckpt:9-16+flat.ckpt:17-+unet.ckpt" and limited.label == "flat:9-16+flat:17-+unet"
     assert ens.margin == max(m.margin for m in ens.members) and not ens.needs_aovs
     plain = ens.denoise_array(noisy).image  # no variance: the mean, no guard
     np.testing.assert_allclose(plain, combine(noisy, [Denoiser(p).denoise_array(noisy).image for p in two_models],

@@ -26,7 +26,10 @@ NET_ATOL = 2e-5
     dataclasses.replace(TINY, arch="plain_unet", noise_input=True),
     dataclasses.replace(TINY, output="direct", aux_inputs=True, noise_input=True),
     dataclasses.replace(TINY, levels=3, noise_input=True, head=6),
-], ids=["dense", "dense-noise", "plain-noise", "direct-aux-noise", "dense-noise-head"])
+    dataclasses.replace(TINY, levels=3, noise_input=True, kernel=5),
+    dataclasses.replace(TINY, arch="plain_unet", kernel=3),
+], ids=["dense", "dense-noise", "plain-noise", "direct-aux-noise", "dense-noise-head", "dense-noise-kernel",
+        "plain-kernel"])
 @pytest.mark.parametrize("positive", [False, True], ids=["any-bn-scale", "positive-bn-scales"])
 def test_folded_unet_equals_the_training_module(config: ModelConfig, positive: bool) -> None:
     """Both ways of the clamp: BN scales of both signs (clamp) and all positive (one maximum)."""

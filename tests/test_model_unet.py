@@ -11,7 +11,7 @@ from imaging.errors import ConfigError
 from model.architectures import alignment, build_model, receptive_radius
 from model.config import PRESETS, ModelConfig
 from model.infer import denoise_image
-from model.unet import MultiScaleDenoiser, conv_macs_per_pixel, pad_to_alignment
+from model.unet import MultiScaleDenoiser, apply_kernel, conv_macs_per_pixel, kernel_offsets, pad_to_alignment
 
 TINY = ModelConfig(arch="dense_unet", layers=1, growth=4, init_features=8, levels=2, transfer="pu")
 
@@ -34,6 +34,9 @@ def trained_like(config: ModelConfig, seed: int = 0, positive: bool = False) -> 
             torch.nn.init.normal_(model.head[2].weight, std=0.05)
             torch.nn.init.uniform_(model.head[0].bias, -0.2, 0.2)
             torch.nn.init.uniform_(model.head[2].bias, -0.02, 0.02)
+        if model.kernel is not None:
+            torch.nn.init.normal_(model.kernel.weight, std=0.05)
+            torch.nn.init.uniform_(model.kernel.bias, -0.05, 0.05)
     return model.eval()
 
 
@@ -51,13 +54,16 @@ def test_every_multiscale_preset_keeps_the_shape(name: str) -> None:
 
 
 @pytest.mark.parametrize("h,w", [(1, 1), (1, 9), (9, 1), (5, 7), (16, 16), (31, 17)])
-@pytest.mark.parametrize("arch,head", [("dense_unet", 0), ("plain_unet", 0), ("dense_unet", 5)])
-def test_any_size_and_residual_identity_at_init(arch: str, head: int, h: int, w: int) -> None:
-    config = dataclasses.replace(TINY, arch=arch, head=head)
+@pytest.mark.parametrize("arch,head,kernel", [("dense_unet", 0, 0), ("plain_unet", 0, 0), ("dense_unet", 5, 0),
+                                              ("dense_unet", 0, 3), ("plain_unet", 0, 5)])
+def test_any_size_and_residual_identity_at_init(arch: str, head: int, kernel: int, h: int, w: int) -> None:
+    config = dataclasses.replace(TINY, arch=arch, head=head, kernel=kernel)
     model = build_model(config).eval()
     x = torch.rand(2, 3, h, w)
     with torch.no_grad():
         assert torch.equal(model(x), x)  # zero-initialised correction: the untrained model is the identity
+    if kernel:
+        return  # the filter needs the residual output
     direct = build_model(dataclasses.replace(config, output="direct")).eval()
     with torch.no_grad():
         out = direct(x)
@@ -73,9 +79,9 @@ def test_padding_replicates_the_edges() -> None:
     assert pad_to_alignment(x[..., :1, :1], 8).eq(0.0).all()  # 1x1 -> 8x8 of its value
 
 
-@pytest.mark.parametrize("head", [0, 4])
-def test_receptive_radius_bounds_the_influence_of_a_pixel(head: int) -> None:
-    config = dataclasses.replace(TINY, layers=1, levels=2, head=head)
+@pytest.mark.parametrize("head,kernel", [(0, 0), (4, 0), (0, 5)])
+def test_receptive_radius_bounds_the_influence_of_a_pixel(head: int, kernel: int) -> None:
+    config = dataclasses.replace(TINY, layers=1, levels=2, head=head, kernel=kernel)
     model = trained_like(config)
     r = receptive_radius(config)
     size = 2 * r + 40
@@ -91,8 +97,9 @@ def test_receptive_radius_bounds_the_influence_of_a_pixel(head: int) -> None:
     assert int(dist.max()) >= r // 4  # and the bound is not wildly loose
 
 
-def test_tiled_inference_on_the_alignment_grid_equals_whole_image() -> None:
-    config = dataclasses.replace(TINY, noise_input=True, noise_radius=2)
+@pytest.mark.parametrize("kernel", [0, 5])
+def test_tiled_inference_on_the_alignment_grid_equals_whole_image(kernel: int) -> None:
+    config = dataclasses.replace(TINY, noise_input=True, noise_radius=2, kernel=kernel)
     model = trained_like(config)
     rng = np.random.default_rng(3)
     h, w = 2 * receptive_radius(config) + 37, receptive_radius(config) + 51
@@ -108,6 +115,38 @@ def test_head_is_validated() -> None:
         ModelConfig(head=8)
     with pytest.raises(ConfigError, match="head must be an integer"):
         dataclasses.replace(TINY, head=-1)
+
+
+def test_kernel_is_validated() -> None:
+    for bad in (1, 2, 4, 17, -3, True):
+        with pytest.raises(ConfigError, match="kernel must be 0 or an odd"):
+            dataclasses.replace(TINY, kernel=bad)
+    for other in ({"arch": "densenet", "levels": 0}, {"output": "direct"}, {"head": 4}):
+        with pytest.raises(ConfigError, match="kernel needs a multi-scale arch"):
+            dataclasses.replace(TINY, kernel=3, **other)
+
+
+def test_the_predicted_filter_is_a_per_pixel_filter_of_the_input_whose_weights_sum_to_one() -> None:
+    torch.manual_seed(0)
+    rgb = torch.rand(2, 3, 6, 7)
+    offsets = kernel_offsets(3)
+    assert len(offsets) == 8 and (0, 0) not in offsets
+    # one coefficient of 1 on the right-hand neighbour: the output is the neighbour minus the pixel
+    coefficients = torch.zeros(2, 8, 6, 7)
+    coefficients[:, offsets.index((0, 1))] = 1.0
+    right = torch.cat([rgb[..., 1:], rgb[..., -1:]], dim=-1)  # beyond the edge: the edge pixel
+    torch.testing.assert_close(apply_kernel(rgb, coefficients, 3), right - rgb)
+    # random coefficients: x + the filter = the normalised sum over the 3x3 window, computed directly
+    coefficients = torch.randn(2, 8, 6, 7)
+    padded = torch.nn.functional.pad(rgb, (1, 1, 1, 1), mode="replicate")
+    want = (1 - coefficients.sum(dim=1, keepdim=True)) * rgb
+    for j, (dy, dx) in enumerate(offsets):
+        want = want + coefficients[:, j:j + 1] * padded[..., 1 + dy:7 + dy, 1 + dx:8 + dx]
+    torch.testing.assert_close(rgb + apply_kernel(rgb, coefficients, 3), want, rtol=1e-5, atol=1e-5)
+    # a constant image passes unchanged whatever the coefficients; a 1x1 image too
+    flat = torch.full((1, 3, 4, 4), 0.7)
+    assert apply_kernel(flat, torch.randn(1, 24, 4, 4), 5).abs().max() < 1e-6
+    assert apply_kernel(rgb[..., :1, :1], torch.randn(2, 24, 1, 1), 5).abs().max() < 1e-6
 
 
 def test_levels_are_validated() -> None:
@@ -154,11 +193,12 @@ def test_the_head_is_the_only_full_resolution_work() -> None:
     assert full == [(3 + config.in_channels, 6), (6, 3)]
 
 
-@pytest.mark.parametrize("arch,head", [("dense_unet", 0), ("plain_unet", 0), ("dense_unet", 7)])
-def test_macs_counted_from_the_plan_match_the_convolutions_run(arch: str, head: int) -> None:
+@pytest.mark.parametrize("arch,head,kernel", [("dense_unet", 0, 0), ("plain_unet", 0, 0), ("dense_unet", 7, 0),
+                                              ("dense_unet", 0, 5), ("plain_unet", 0, 3)])
+def test_macs_counted_from_the_plan_match_the_convolutions_run(arch: str, head: int, kernel: int) -> None:
     from model.unet import macs_per_pixel
 
-    config = dataclasses.replace(TINY, arch=arch, levels=3, layers=2, noise_input=True, head=head)
+    config = dataclasses.replace(TINY, arch=arch, levels=3, layers=2, noise_input=True, head=head, kernel=kernel)
     measured = conv_macs_per_pixel(build_model(config), 64, 64)
     assert macs_per_pixel(config, pool_first=False) == pytest.approx(measured, rel=1e-9)
     assert macs_per_pixel(config) < measured  # the folded net pools before the transition's conv
