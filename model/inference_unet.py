@@ -20,8 +20,8 @@ encoder/decoder shape allows:
   forward pass, and the tail's affine map, write into one flat buffer sized for the largest.
 * **The full-resolution head** (``head`` > 0) runs as two plain convs on channels_last input.
 * **The predicted filter** (``kernel`` > 0): its coefficients' conv1x1 reads the tail's BN-ReLU
-  output like the tail, writes block-major like it, and the filter runs in float32
-  (:func:`model.unet.apply_kernel`).
+  output like the tail, writes block-major like it, and the filter runs in float32, a band of rows
+  at a time (:func:`model.unet.add_kernel_`).
 * **Optionally bfloat16** (``dtype``, :mod:`model.precision`): weights and activations; the input
   is built and the residual added in float32.
 * **Unshuffle and shuffle as strided copies.** The network input (RGB, its gradients, the rest)
@@ -44,7 +44,7 @@ from torch.nn import functional as F
 
 from model.config import ModelConfig
 from model.inference_net import _AffineReLU, _ClampConv1x1, _Conv, bn_affine, fold_conv_bn, padded_input
-from model.unet import Block, MultiScaleDenoiser, alignment, apply_kernel
+from model.unet import Block, MultiScaleDenoiser, add_kernel_, alignment
 
 
 class _FoldedBlock(nn.Module):
@@ -237,9 +237,9 @@ class InferenceUNet(nn.Module):
         coefficients = None if self.kernel is None else self.kernel(features)
         y += self.skip(raw)
         out = shuffled_output(y, h, w)
-        if coefficients is not None:
-            out = out + apply_kernel(image[:, :3], shuffled_output(coefficients, h, w), self.config.kernel)
         out = out + image[:, :3] if self.config.output == "residual" else out
+        if coefficients is not None:
+            add_kernel_(out, image[:, :3], shuffled_output(coefficients, h, w), self.config.kernel)
         if self.head is None:
             return out
         net_in = padded[:, :h, :w].permute(0, 3, 1, 2)

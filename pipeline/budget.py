@@ -41,11 +41,11 @@ PROBE_SHARE = 0.05
 MAX_SPP = 1 << 16
 # Best quality first, as measured on ../shared/eval-scenes (docs/scoreboard.md): the default
 # ensemble (pipeline/denoise.py's DEFAULT_MODEL: two networks at any known spp, `fast+u-high` above
-# 16 spp) is above `fast` at every spp for 1.0-1.8x its time; the same with `u-balanced-lowspp` in
-# `u-high-lowspp`'s place (FASTER_DEFAULT) 0.01-0.06 dB under it at 1-16 spp for 0.64-0.68x its time
-# (docs/training.md), above `fast` and, at 1-8 spp, faster; the shipped `fast` is level with
-# `balanced` at 16 spp and ahead at 128 spp, `high` last — and `fast` is the cheapest of the flat presets.
-FASTER_DEFAULT = SEPARATOR.join("u-balanced-lowspp" if m == "u-high-lowspp" else m for m in DEFAULT_MODEL)
+# 16 spp) is above `fast` at every spp; the same without its flat members up to 16 spp (FASTER_DEFAULT:
+# the U-Net u-balanced-k5-lowspp alone there) 0.2-0.4 dB under it at 1-16 spp for 0.4x its time
+# (docs/multiscale.md), above the noisy-render specialists of 2026-12-04 alone; the shipped `fast` is level
+# with `balanced` at 16 spp and ahead at 128 spp, `high` last — and `fast` is the cheapest of the flat presets.
+FASTER_DEFAULT = SEPARATOR.join(m for m in DEFAULT_MODEL if m not in ("fast:9-16", "fast-lowspp:-8"))
 PRESET_ORDER = (SEPARATOR.join(DEFAULT_MODEL), FASTER_DEFAULT, "fast", "balanced", "high")
 DEFAULT_CURVES = WEIGHTS_DIR / "tradeoff.json"
 

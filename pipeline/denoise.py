@@ -30,10 +30,12 @@ if TYPE_CHECKING:
 
 WEIGHTS_DIR = Path(__file__).resolve().parents[1] / "model" / "weights"
 # The model when none is named: an ensemble of shipped checkpoints, two networks at any known spp
-# (fast-lowspp + u-high-lowspp up to 8 spp, fast + u-high-lowspp at 9-16, fast + u-high above);
-# fast, the first, alone where the spp is unknown (docs/scoreboard.md, "The default"). `fast` is two
-# members: limited to 9-16 spp it computes in bfloat16 under `auto` (model/precision.py), above in float32.
-DEFAULT_MODEL = ("fast:17-", "fast:9-16", "fast-lowspp:-8", "u-high-lowspp", "u-high:17-")
+# (fast-lowspp + u-balanced-k5-lowspp up to 8 spp, fast + u-balanced-k5-lowspp at 9-16, fast + u-high
+# above); fast, the first, alone where the spp is unknown (docs/scoreboard.md, "The default"). `fast` is
+# two members: limited to 9-16 spp it computes in bfloat16 under `auto` (model/precision.py), above in
+# float32. u-balanced-k5-lowspp (a U-Net with a predicted filter, docs/multiscale.md) took u-high-lowspp's
+# place on 2026-12-05: level with it in the pair at 1-16 spp for 0.76x the pair's time.
+DEFAULT_MODEL = ("fast:17-", "fast:9-16", "fast-lowspp:-8", "u-balanced-k5-lowspp", "u-high:17-")
 DEFAULT_MAX_MEMORY_MB = 1024
 
 

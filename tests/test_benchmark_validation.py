@@ -85,5 +85,5 @@ def test_the_command_writes_json_and_table_and_fails_in_one_line(data: tuple[Pat
 def test_the_default_models_are_the_shipped_default_members_without_their_ranges() -> None:
     specs = model_specs(build_parser().parse_args(["--data", "d"]).models)
     assert list(specs) == list(dict.fromkeys(spp_range(m)[0] for m in DEFAULT_MODEL))
-    assert list(specs) == ["fast", "fast-lowspp", "u-high-lowspp", "u-high"]
+    assert list(specs) == ["fast", "fast-lowspp", "u-balanced-k5-lowspp", "u-high"]
     assert all(path.is_file() for path in specs.values()), specs

@@ -133,19 +133,17 @@ def test_auto_candidates_are_the_presets_with_weights(tmp_path: Path,
     assert set(budget_candidates("auto", RenderSettings(scene="unused.xml", max_memory_mb=64))) == {"fast", "high"}
     write_tiny_checkpoint(tmp_path / "u-high.ckpt", seed=2)
     assert set(budget_candidates("auto", RenderSettings(scene="unused.xml", max_memory_mb=64))) == {"fast", "high"}
-    write_tiny_checkpoint(tmp_path / "u-high-lowspp.ckpt", seed=3, max_spp=16)
-    assert set(budget_candidates("auto", RenderSettings(scene="unused.xml", max_memory_mb=64))) == {"fast", "high"}
+    write_tiny_checkpoint(tmp_path / "u-balanced-k5-lowspp.ckpt", seed=3, max_spp=16)  # completes the faster one
+    found = budget_candidates("auto", RenderSettings(scene="unused.xml", max_memory_mb=64))
+    assert budget.FASTER_DEFAULT == "fast:17-+u-balanced-k5-lowspp+u-high:17-"  # the default's U-Net alone to 16 spp
+    assert list(found) == [budget.FASTER_DEFAULT, "fast", "high"]
     write_tiny_checkpoint(tmp_path / "fast-lowspp.ckpt", seed=4, max_spp=16)  # completes the default
     found = budget_candidates("auto", RenderSettings(scene="unused.xml", max_memory_mb=64))
-    default = "fast:17-+fast:9-16+fast-lowspp:-8+u-high-lowspp+u-high:17-"
-    assert set(found) == {default, "fast", "high"}
-    assert [(m.path.name, m.min_spp, m.max_spp) for m in found[default].members] == [
-        ("fast.ckpt", 17, 0), ("fast.ckpt", 9, 16), ("fast-lowspp.ckpt", 0, 8), ("u-high-lowspp.ckpt", 0, 16),
-        ("u-high.ckpt", 17, 0)]
-    write_tiny_checkpoint(tmp_path / "u-balanced-lowspp.ckpt", seed=5, max_spp=16)  # completes the faster one
-    found = budget_candidates("auto", RenderSettings(scene="unused.xml", max_memory_mb=64))
+    default = "fast:17-+fast:9-16+fast-lowspp:-8+u-balanced-k5-lowspp+u-high:17-"
     assert list(found) == [default, budget.FASTER_DEFAULT, "fast", "high"]  # best quality first
-    assert [m.path.name for m in found[budget.FASTER_DEFAULT].members][3] == "u-balanced-lowspp.ckpt"
+    assert [(m.path.name, m.min_spp, m.max_spp) for m in found[default].members] == [
+        ("fast.ckpt", 17, 0), ("fast.ckpt", 9, 16), ("fast-lowspp.ckpt", 0, 8), ("u-balanced-k5-lowspp.ckpt", 0, 16),
+        ("u-high.ckpt", 17, 0)]
 
 
 @pytest.mark.parametrize("args", [["--model", "auto"], ["--time-budget", "5", "--spp", "4"],

@@ -192,7 +192,7 @@ def test_an_ensemble_spec_limits_a_member_to_an_spp_range(tmp_path: Path, two_mo
         assert ens.denoise_array(noisy, variance=var, spp=spp).models == ran, spp
     assert Denoiser(f"{flat}+{unet}:-16").members[1].max_spp == 16
     assert [spp_range(m) for m in DEFAULT_MODEL] == [("fast", 17, 0), ("fast", 9, 16), ("fast-lowspp", 0, 8),
-                                                      ("u-high-lowspp", 0, 0), ("u-high", 17, 0)]
+                                                      ("u-balanced-k5-lowspp", 0, 0), ("u-high", 17, 0)]
     # where no member is meant for the spp (the spp unknown and every member limited), the first runs alone
     fallback = Denoiser([f"{flat}:9-", f"{low}:-4", f"{unet}:17-"])
     for spp, ran in ((2, ("low",)), (8, ("flat",)), (9, ("flat",)), (17, ("flat", "unet")), (None, ("flat",))):

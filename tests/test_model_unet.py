@@ -11,7 +11,7 @@ from imaging.errors import ConfigError
 from model.architectures import alignment, build_model, receptive_radius
 from model.config import PRESETS, ModelConfig
 from model.infer import denoise_image
-from model.unet import MultiScaleDenoiser, apply_kernel, conv_macs_per_pixel, kernel_offsets, pad_to_alignment
+from model.unet import MultiScaleDenoiser, add_kernel_, apply_kernel, conv_macs_per_pixel, kernel_offsets, pad_to_alignment
 
 TINY = ModelConfig(arch="dense_unet", layers=1, growth=4, init_features=8, levels=2, transfer="pu")
 
@@ -143,6 +143,11 @@ def test_the_predicted_filter_is_a_per_pixel_filter_of_the_input_whose_weights_s
     for j, (dy, dx) in enumerate(offsets):
         want = want + coefficients[:, j:j + 1] * padded[..., 1 + dy:7 + dy, 1 + dx:8 + dx]
     torch.testing.assert_close(rgb + apply_kernel(rgb, coefficients, 3), want, rtol=1e-5, atol=1e-5)
+    # the in-place banded version adds the same, with channels_last coefficients and any band height
+    for rows in (1, 4, 16):
+        out = torch.ones(2, 3, 6, 7)
+        add_kernel_(out, rgb, coefficients.contiguous(memory_format=torch.channels_last), 3, rows=rows)
+        torch.testing.assert_close(out, 1 + apply_kernel(rgb, coefficients, 3), rtol=1e-5, atol=1e-5)
     # a constant image passes unchanged whatever the coefficients; a 1x1 image too
     flat = torch.full((1, 3, 4, 4), 0.7)
     assert apply_kernel(flat, torch.randn(1, 24, 4, 4), 5).abs().max() < 1e-6

@@ -167,7 +167,7 @@ def test_shipped_model_beats_noisy_input_on_demo_scene(tmp_path: Path) -> None:
     assert main([str(DEMO), "--spp", "16", "--res", "32", "32", "--reference-spp", "512",
                  "--out", str(out), "--quiet"]) == 0
     metrics = json.loads((out / "metrics.json").read_text())
-    assert metrics["model"]["models_run"] == ["fast", "u-high-lowspp"]  # u-high: above 16 spp only
+    assert metrics["model"]["models_run"] == ["fast", "u-balanced-k5-lowspp"]  # u-high: above 16 spp only
     quality = metrics["quality"]
     assert quality["denoised"]["psnr"] > quality["noisy"]["psnr"] + 1.0
     assert quality["denoised"]["relmse"] < quality["noisy"]["relmse"]

@@ -131,7 +131,8 @@ def test_the_default_runs_its_flat_net_in_bfloat16_up_to_16_spp_only() -> None:
     bf16 = "bfloat16" if native_bfloat16() else "float32"
     default = Denoiser()
     assert {m.label: m.precision for m in default.members} == {
-        "fast:17-": "float32", "fast:9-16": bf16, "fast-lowspp:-8": bf16, "u-high-lowspp": bf16, "u-high:17-": bf16}
-    assert [m.label for m in default.active(12)] == ["fast:9-16", "u-high-lowspp"]
+        "fast:17-": "float32", "fast:9-16": bf16, "fast-lowspp:-8": bf16, "u-balanced-k5-lowspp": bf16,
+        "u-high:17-": bf16}
+    assert [m.label for m in default.active(12)] == ["fast:9-16", "u-balanced-k5-lowspp"]
     assert [m.label for m in default.active(17)] == ["fast:17-", "u-high:17-"]
     assert [m.label for m in default.active(None)] == ["fast:17-"]  # the spp unknown: fast in float32
