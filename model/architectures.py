@@ -107,7 +107,7 @@ def _unet_live_channels(config: ModelConfig) -> float:
     # the head: the output, its input (output and network input, concatenated and a channels_last
     # copy), its hidden channels and its output, beside the network input and the output
     head = cimg + config.in_channels + 3 + 2 * (3 + config.in_channels) + config.head + 3 if config.head else 0
-    # the filter: the output, its coefficients at half and full resolution (model.unet.add_kernel_
-    # works a band of rows at a time: its temporaries are a few rows')
-    kernel = base + 3 + taps * (1 + share[0] * 4) if taps else 0
+    # the filter: the output and its coefficients at half resolution (model.unet.add_kernel_ works a
+    # band of rows at a time: its temporaries are a few rows')
+    kernel = base + 3 + taps * share[0] * 4 if taps else 0
     return max(inputs, base + buffers + temporaries, head, kernel)

@@ -20,8 +20,8 @@ encoder/decoder shape allows:
   forward pass, and the tail's affine map, write into one flat buffer sized for the largest.
 * **The full-resolution head** (``head`` > 0) runs as two plain convs on channels_last input.
 * **The predicted filter** (``kernel`` > 0): its coefficients' conv1x1 reads the tail's BN-ReLU
-  output like the tail, writes block-major like it, and the filter runs in float32, a band of rows
-  at a time (:func:`model.unet.add_kernel_`).
+  output like the tail; the filter runs in float32 a band of rows at a time, each band's
+  coefficients pixel-shuffled on their own (:func:`model.unet.add_kernel_`).
 * **Optionally bfloat16** (``dtype``, :mod:`model.precision`): weights and activations; the input
   is built and the residual added in float32.
 * **Unshuffle and shuffle as strided copies.** The network input (RGB, its gradients, the rest)
@@ -162,10 +162,9 @@ class InferenceUNet(nn.Module):
             self.tail_pre = _AffineReLU(scale, shift)
             self.tail = _Conv(tail_weight[order_out], None, relu=False)
             self.kernel = None
-            if model.kernel is not None:
-                order_k = shuffle_order(model.kernel.out_channels // 4)
+            if model.kernel is not None:  # writes pixel_shuffle's order: add_kernel_ shuffles it band by band
                 weight = model.kernel.weight.detach()[:, orders[0]] if self.dense else model.kernel.weight.detach()
-                self.kernel = _Conv(weight[order_k].clone(), model.kernel.bias.detach()[order_k].clone(), relu=False)
+                self.kernel = _Conv(weight.clone(), model.kernel.bias.detach().clone(), relu=False)
             self.skip = _Conv(model.skip.weight.detach()[order_out][:, order_in].clone(),
                               model.skip.bias.detach()[order_out].clone(), relu=False)
             self.head = None if model.head is None else nn.Sequential(
@@ -239,7 +238,7 @@ class InferenceUNet(nn.Module):
         out = shuffled_output(y, h, w)
         out = out + image[:, :3] if self.config.output == "residual" else out
         if coefficients is not None:
-            add_kernel_(out, image[:, :3], shuffled_output(coefficients, h, w), self.config.kernel)
+            add_kernel_(out, image[:, :3], coefficients, self.config.kernel, scale=2)
         if self.head is None:
             return out
         net_in = padded[:, :h, :w].permute(0, 3, 1, 2)

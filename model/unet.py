@@ -181,7 +181,7 @@ class MultiScaleDenoiser(nn.Module):
         return out if self.head is None else out + self.head(torch.cat([out, net_in], dim=1))
 
 
-KERNEL_ROWS = 16  # rows of a band of add_kernel_: at 1080p 0.12 s a call on one thread, 8-64 alike
+KERNEL_ROWS = 64  # rows of a band of add_kernel_ (720p, two threads: 39 ms a call at 64 or 128, 45 at 16)
 
 
 def kernel_offsets(size: int) -> list[tuple[int, int]]:
@@ -208,19 +208,23 @@ def apply_kernel(rgb: torch.Tensor, coefficients: torch.Tensor, size: int) -> to
 
 
 def add_kernel_(out: torch.Tensor, rgb: torch.Tensor, coefficients: torch.Tensor, size: int,
-                rows: int = KERNEL_ROWS) -> None:
+                rows: int = KERNEL_ROWS, scale: int = 1) -> None:
     """``out += apply_kernel(rgb, coefficients, size)`` in place, ``rows`` rows at a time (no
-    autograd): each band's coefficients, edge-padded RGB and sum stay in the CPU's cache, where the
-    whole-image passes of :func:`apply_kernel` stream every term through memory. Any layout of
-    ``coefficients`` (the folded net's are channels_last) and dtype; the sum is float32."""
+    autograd): each band's coefficients, edge-padded RGB and sum stay small, where the whole-image
+    passes of :func:`apply_kernel` stream every term through memory. ``scale`` 2: ``coefficients``
+    are at half resolution, ``4 (size^2 - 1)`` channels in :func:`torch.nn.functional.pixel_shuffle`'s
+    order (the conv's output as it is, at least half the image's size), each band shuffled on its
+    own. Any layout and dtype of ``coefficients``; the sum is float32."""
     r = size // 2
     n, c, h, w = rgb.shape
     cols = torch.arange(-r, w + r).clamp(0, w - 1)
     offsets = kernel_offsets(size)
+    rows += rows % scale  # bands start on the coefficients' grid
     for y0 in range(0, h, rows):
         y1 = min(h, y0 + rows)
         padded = rgb[:, :, torch.arange(y0 - r, y1 + r).clamp(0, h - 1)][..., cols]
-        a = coefficients[:, :, y0:y1].float().contiguous()
+        band = coefficients[:, :, y0 // scale:-(-y1 // scale)].float()
+        a = (F.pixel_shuffle(band, scale) if scale > 1 else band)[:, :, :y1 - y0, :w].contiguous()
         total = torch.zeros(n, c, y1 - y0, w)
         for j, (dy, dx) in enumerate(offsets):
             total.addcmul_(a[:, j:j + 1], padded[:, :, r + dy:r + dy + y1 - y0, r + dx:r + dx + w])

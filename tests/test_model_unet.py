@@ -148,6 +148,13 @@ def test_the_predicted_filter_is_a_per_pixel_filter_of_the_input_whose_weights_s
         out = torch.ones(2, 3, 6, 7)
         add_kernel_(out, rgb, coefficients.contiguous(memory_format=torch.channels_last), 3, rows=rows)
         torch.testing.assert_close(out, 1 + apply_kernel(rgb, coefficients, 3), rtol=1e-5, atol=1e-5)
+    # and from half-resolution coefficients in pixel_shuffle's order, larger than half the image (padded)
+    half = torch.randn(2, 32, 4, 5).contiguous(memory_format=torch.channels_last)
+    full = torch.nn.functional.pixel_shuffle(half, 2)[..., :6, :7]
+    for rows in (1, 2, 3, 64):
+        out = torch.zeros(2, 3, 6, 7)
+        add_kernel_(out, rgb, half.to(torch.bfloat16), 3, rows=rows, scale=2)
+        torch.testing.assert_close(out, apply_kernel(rgb, full.to(torch.bfloat16), 3), rtol=1e-5, atol=1e-5)
     # a constant image passes unchanged whatever the coefficients; a 1x1 image too
     flat = torch.full((1, 3, 4, 4), 0.7)
     assert apply_kernel(flat, torch.randn(1, 24, 4, 4), 5).abs().max() < 1e-6
