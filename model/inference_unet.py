@@ -105,13 +105,12 @@ def unshuffled_input(image: torch.Tensor, align: int, dtype: torch.dtype) -> tup
 
 
 def shuffled_output(y: torch.Tensor, h: int, w: int) -> torch.Tensor:
-    """The 2x2 pixel-shuffle of an Nx4Cx(h2)x(w2) tensor whose channels are in :func:`shuffle_order`
-    (C channels, 3 for the colours), as float32, cropped to ``h`` x ``w``: an NxCxhxw channels_last tensor."""
-    n, c4, h2, w2 = y.shape
-    c = c4 // 4
-    full = torch.empty(n, 2 * h2, 2 * w2, c)
-    blocks = y.permute(0, 2, 3, 1).reshape(n, h2, w2, 2, 2, c)
-    full.view(n, h2, 2, w2, 2, c).copy_(blocks.permute(0, 1, 3, 2, 4, 5))
+    """The 2x2 pixel-shuffle of an Nx12x(h2)x(w2) tensor whose channels are in :func:`shuffle_order`
+    (3 colours), as float32, cropped to ``h`` x ``w``: an Nx3xhxw channels_last tensor."""
+    n, _, h2, w2 = y.shape
+    full = torch.empty(n, 2 * h2, 2 * w2, 3)
+    blocks = y.permute(0, 2, 3, 1).reshape(n, h2, w2, 2, 2, 3)
+    full.view(n, h2, 2, w2, 2, 3).copy_(blocks.permute(0, 1, 3, 2, 4, 5))
     return full[:, :h, :w].permute(0, 3, 1, 2)
 
 

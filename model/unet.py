@@ -197,8 +197,8 @@ def apply_kernel(rgb: torch.Tensor, coefficients: torch.Tensor, size: int) -> to
     pixels beyond the edge repeat the edge's. Float32 whatever the coefficients' dtype."""
     r = size // 2
     h, w = rgb.shape[-2:]
-    rows = (torch.arange(-r, h + r).clamp(0, h - 1))
-    cols = (torch.arange(-r, w + r).clamp(0, w - 1))
+    rows = torch.arange(-r, h + r).clamp(0, h - 1)
+    cols = torch.arange(-r, w + r).clamp(0, w - 1)
     padded = rgb[..., rows, :][..., cols]
     a = coefficients.float()
     total = torch.zeros_like(rgb)

@@ -134,33 +134,20 @@ def test_same_config_is_a_warm_start_for_any_architecture() -> None:
         grow_model(build_model(dataclasses.replace(source.config, layers=2)), source)
 
 
-def test_a_multiscale_net_grows_a_head_that_starts_at_zero_and_learns() -> None:
+@pytest.mark.parametrize("extra", [{"head": 4}, {"kernel": 5}], ids=["head", "predicted-filter"])
+def test_a_multiscale_net_grows_a_head_or_filter_that_starts_at_zero_and_learns(extra: dict) -> None:
     import dataclasses
 
     from tests.test_model_unet import TINY, trained_like
 
     source = trained_like(TINY)
-    target = build_model(dataclasses.replace(TINY, head=4))
+    target = build_model(dataclasses.replace(TINY, **extra))
     grow_model(target, source)
     x = torch.rand(1, 3, 20, 24)
     with torch.no_grad():
-        assert torch.equal(target.eval()(x), source(x))  # the head's last conv is zero
+        assert torch.equal(target.eval()(x), source(x))  # the head's last conv / the coefficients' conv is zero
     target.train()(x).square().mean().backward()
-    assert target.head[2].weight.grad.abs().sum() > 0  # and it learns from the first step
-    with pytest.raises(ConfigError, match="only densenet"):  # a head is never dropped
+    new = target.head[2] if "head" in extra else target.kernel
+    assert new.weight.grad.abs().sum() > 0  # and it learns from the first step
+    with pytest.raises(ConfigError, match="only densenet"):  # a head or filter is never dropped
         grow_model(build_model(TINY), target)
-
-
-def test_a_multiscale_net_grows_a_predicted_filter_that_starts_at_zero_and_learns() -> None:
-    import dataclasses
-
-    from tests.test_model_unet import TINY, trained_like
-
-    source = trained_like(TINY)
-    target = build_model(dataclasses.replace(TINY, kernel=5))
-    grow_model(target, source)
-    x = torch.rand(1, 3, 20, 24)
-    with torch.no_grad():
-        assert torch.equal(target.eval()(x), source(x))  # the coefficients' conv is zero
-    target.train()(x).square().mean().backward()
-    assert target.kernel.weight.grad.abs().sum() > 0  # and it learns from the first step
