@@ -42,7 +42,7 @@ MAX_SPP = 1 << 16
 # Best quality first, as measured on ../shared/eval-scenes (docs/scoreboard.md): the default
 # ensemble (pipeline/denoise.py's DEFAULT_MODEL: two networks at any known spp, `fast+u-high` above
 # 16 spp) is above `fast` at every spp; the same without its flat members up to 16 spp (FASTER_DEFAULT:
-# the U-Net u-balanced-k5-lowspp alone there) 0.2-0.4 dB under it at 1-16 spp for 0.4x its time
+# the U-Net u-balanced-k5-lowspp alone there) 0.12-0.42 dB under it at 1-16 spp for 0.4x its time
 # (docs/multiscale.md), above the noisy-render specialists of 2026-12-04 alone; the shipped `fast` is level
 # with `balanced` at 16 spp and ahead at 128 spp, `high` last — and `fast` is the cheapest of the flat presets.
 FASTER_DEFAULT = SEPARATOR.join(m for m in DEFAULT_MODEL if m not in ("fast:9-16", "fast-lowspp:-8"))
