@@ -101,7 +101,7 @@ def _unet_live_channels(config: ModelConfig) -> float:
         kept = plan.width[:n] + [plan.width[n]]  # the encoder outputs kept for the skips, the bottom
         busy = [2 * plan.width[i] * 3 + plan.mid[i] for i in range(n + 1)]  # upsampled, concatenated, x, clamp
     buffers = sum(c * s for c, s in zip(kept, share))
-    taps = config.kernel ** 2 - 1 if config.kernel else 0  # the predicted filter's coefficients per pixel
+    taps = config.kernel_taps  # the predicted filter's coefficients per pixel
     temporaries = max(max(b * s for b, s in zip(busy, share)),  # the tail: BN-ReLU copy, two 12-channel
                       (kept[0] + 24 + 4 * taps) * share[0] + 6)  # convs, the coefficients, output
     # the head: the output, its input (output and network input, concatenated and a channels_last

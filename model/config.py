@@ -111,6 +111,11 @@ class ModelConfig:
             raise ConfigError("model kernel needs a multi-scale arch with residual output and no head")
 
     @property
+    def kernel_taps(self) -> int:
+        """Coefficients per pixel of the predicted filter: its k*k - 1 neighbours (0 without one)."""
+        return self.kernel ** 2 - 1 if self.kernel else 0
+
+    @property
     def multiscale(self) -> bool:
         """True for the encoder/decoder archs of :mod:`model.unet`."""
         return self.arch in UNET_ARCHS

@@ -154,7 +154,7 @@ class MultiScaleDenoiser(nn.Module):
         self.head = make_head(config)
         self.kernel = None
         if config.kernel:
-            self.kernel = nn.Conv2d(below, 4 * (config.kernel ** 2 - 1), 1, bias=True)
+            self.kernel = nn.Conv2d(below, 4 * config.kernel_taps, 1, bias=True)
             nn.init.zeros_(self.kernel.weight)
             nn.init.zeros_(self.kernel.bias)
 
@@ -191,15 +191,20 @@ def kernel_offsets(size: int) -> list[tuple[int, int]]:
     return [(dy, dx) for dy in range(-r, r + 1) for dx in range(-r, r + 1) if dy or dx]
 
 
+def _edge_padded(rgb: torch.Tensor, r: int, y0: int, y1: int) -> torch.Tensor:
+    """Rows ``y0 - r`` .. ``y1 + r`` and columns ``-r`` .. ``W + r`` of an NxCxHxW ``rgb``, pixels beyond
+    its edges repeating the edge's (any r: a 1x1 image too): the window the filters read."""
+    h, w = rgb.shape[-2:]
+    return rgb[..., torch.arange(y0 - r, y1 + r).clamp(0, h - 1), :][..., torch.arange(-r, w + r).clamp(0, w - 1)]
+
+
 def apply_kernel(rgb: torch.Tensor, coefficients: torch.Tensor, size: int) -> torch.Tensor:
     """``sum_o coefficients[:, j] * (rgb(p + o) - rgb(p))`` over the :func:`kernel_offsets` o (j their
     index): NxCxHxW ``rgb``, Nx(size^2 - 1)xHxW ``coefficients`` (one filter for all channels);
     pixels beyond the edge repeat the edge's. Float32 whatever the coefficients' dtype."""
     r = size // 2
     h, w = rgb.shape[-2:]
-    rows = torch.arange(-r, h + r).clamp(0, h - 1)
-    cols = torch.arange(-r, w + r).clamp(0, w - 1)
-    padded = rgb[..., rows, :][..., cols]
+    padded = _edge_padded(rgb, r, 0, h)
     a = coefficients.float()
     total = torch.zeros_like(rgb)
     for j, (dy, dx) in enumerate(kernel_offsets(size)):
@@ -217,12 +222,11 @@ def add_kernel_(out: torch.Tensor, rgb: torch.Tensor, coefficients: torch.Tensor
     own. Any layout and dtype of ``coefficients``; the sum is float32."""
     r = size // 2
     n, c, h, w = rgb.shape
-    cols = torch.arange(-r, w + r).clamp(0, w - 1)
     offsets = kernel_offsets(size)
     rows += rows % scale  # bands start on the coefficients' grid
     for y0 in range(0, h, rows):
         y1 = min(h, y0 + rows)
-        padded = rgb[:, :, torch.arange(y0 - r, y1 + r).clamp(0, h - 1)][..., cols]
+        padded = _edge_padded(rgb, r, y0, y1)
         band = coefficients[:, :, y0 // scale:-(-y1 // scale)].float()
         a = (F.pixel_shuffle(band, scale) if scale > 1 else band)[:, :, :y1 - y0, :w].contiguous()
         total = torch.zeros(n, c, y1 - y0, w)
@@ -339,7 +343,7 @@ def macs_per_pixel(config: ModelConfig, plain_scale: float | None = None, pool_f
         macs, below = block(w[i] + enc_out[i], i)
         total += macs
     total += 9 * (below + cin4) * 12 * share[0]
-    total += below * 4 * max(config.kernel ** 2 - 1, 0) * share[0]  # the filter's coefficients
+    total += below * 4 * config.kernel_taps * share[0]  # the filter's coefficients
     return total + 9 * (3 + config.in_channels + 3) * config.head
 
 

@@ -34,7 +34,8 @@ WEIGHTS_DIR = Path(__file__).resolve().parents[1] / "model" / "weights"
 # above); fast, the first, alone where the spp is unknown (docs/scoreboard.md, "The default"). `fast` is
 # two members: limited to 9-16 spp it computes in bfloat16 under `auto` (model/precision.py), above in
 # float32. u-balanced-k5-lowspp (a U-Net with a predicted filter, docs/multiscale.md) took u-high-lowspp's
-# place on 2026-12-05: level with it in the pair at 1-16 spp for 0.76x the pair's time.
+# place on 2026-12-05: level with it in the pair at 1-16 spp with 75.6k MACs/px against 108.9k (the time
+# saved within the inference benchmark's noise, docs/speed.md).
 DEFAULT_MODEL = ("fast:17-", "fast:9-16", "fast-lowspp:-8", "u-balanced-k5-lowspp", "u-high:17-")
 DEFAULT_MAX_MEMORY_MB = 1024
 
