@@ -161,6 +161,28 @@ def test_the_predicted_filter_is_a_per_pixel_filter_of_the_input_whose_weights_s
     assert apply_kernel(rgb[..., :1, :1], torch.randn(2, 24, 1, 1), 5).abs().max() < 1e-6
 
 
+
+@pytest.mark.parametrize("size", [3, 5])
+def test_the_filters_hand_written_gradient_is_autograds_through_the_direct_sum(size: int) -> None:
+    torch.manual_seed(1)
+    rgb = torch.rand(2, 3, 7, 6)
+    coefficients = torch.randn(2, size * size - 1, 7, 6, requires_grad=True)
+    weight = torch.randn(2, 3, 7, 6)  # a loss that weighs every output differently
+    (apply_kernel(rgb, coefficients, size) * weight).sum().backward()
+    got, coefficients.grad = coefficients.grad, None
+    r = size // 2
+    padded = torch.nn.functional.pad(rgb, (r, r, r, r), mode="replicate")
+    direct = sum(coefficients[:, j:j + 1] * (padded[..., r + dy:r + dy + 7, r + dx:r + dx + 6] - rgb)
+                 for j, (dy, dx) in enumerate(kernel_offsets(size)))
+    (direct * weight).sum().backward()
+    torch.testing.assert_close(got, coefficients.grad, rtol=1e-5, atol=1e-5)
+    # bfloat16 coefficients (autocast) get a bfloat16 gradient; the input gets none
+    half = coefficients.detach().to(torch.bfloat16).requires_grad_()
+    apply_kernel(rgb, half, size).sum().backward()
+    assert half.grad.dtype == torch.bfloat16
+    with pytest.raises(ValueError, match="no gradient to rgb"):
+        apply_kernel(rgb.requires_grad_(), coefficients, size)
+
 def test_levels_are_validated() -> None:
     with pytest.raises(ConfigError, match="levels must be in"):
         ModelConfig(arch="dense_unet", levels=0)
