@@ -204,7 +204,7 @@ def apply_kernel(rgb: torch.Tensor, coefficients: torch.Tensor, size: int) -> to
     pixels beyond the edge repeat the edge's. Float32 whatever the coefficients' dtype.
     Differentiable in the coefficients only: ``rgb`` is the network's input, and a ValueError if it
     needs a gradient. The forward pass is :func:`add_kernel_`'s; nothing per offset is kept for the
-    backward pass (a quarter to a third of the time of autograd through the sum's terms, K 5-7)."""
+    backward pass (about a third of the time of autograd through the sum's terms at K 5-7)."""
     if rgb.requires_grad:
         raise ValueError("apply_kernel gives no gradient to rgb (the network's input)")
     return _KernelFilter.apply(rgb, coefficients.float(), size)

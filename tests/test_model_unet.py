@@ -161,7 +161,6 @@ def test_the_predicted_filter_is_a_per_pixel_filter_of_the_input_whose_weights_s
     assert apply_kernel(rgb[..., :1, :1], torch.randn(2, 24, 1, 1), 5).abs().max() < 1e-6
 
 
-
 @pytest.mark.parametrize("size", [3, 5])
 def test_the_filters_hand_written_gradient_is_autograds_through_the_direct_sum(size: int) -> None:
     torch.manual_seed(1)
@@ -182,6 +181,7 @@ def test_the_filters_hand_written_gradient_is_autograds_through_the_direct_sum(s
     assert half.grad.dtype == torch.bfloat16
     with pytest.raises(ValueError, match="no gradient to rgb"):
         apply_kernel(rgb.requires_grad_(), coefficients, size)
+
 
 def test_levels_are_validated() -> None:
     with pytest.raises(ConfigError, match="levels must be in"):
