@@ -229,8 +229,9 @@ class _KernelFilter(torch.autograd.Function):
         n, _, h, w = rgb.shape
         grad = grad.float().contiguous()
         padded = _edge_padded(rgb, r, 0, h)
-        out = torch.empty(n, size * size - 1, h, w)
-        for j, (dy, dx) in enumerate(kernel_offsets(size)):
+        offsets = kernel_offsets(size)
+        out = torch.empty(n, len(offsets), h, w)
+        for j, (dy, dx) in enumerate(offsets):
             torch.sum(grad * padded[..., r + dy:r + dy + h, r + dx:r + dx + w], dim=1, out=out[:, j])
         out -= (grad * rgb).sum(dim=1, keepdim=True)
         return None, out, None

@@ -126,6 +126,18 @@ def test_kernel_is_validated() -> None:
             dataclasses.replace(TINY, kernel=3, **other)
 
 
+def window_sum(rgb: torch.Tensor, coefficients: torch.Tensor, size: int) -> torch.Tensor:
+    """``(1 - sum_j a_j) x(p) + sum_j a_j x(p + o_j)`` over the size x size window, edges replicated,
+    computed directly (autograd flows to the coefficients): what ``x + apply_kernel`` must give."""
+    r = size // 2
+    h, w = rgb.shape[-2:]
+    padded = torch.nn.functional.pad(rgb, (r, r, r, r), mode="replicate")
+    out = (1 - coefficients.sum(dim=1, keepdim=True)) * rgb
+    for j, (dy, dx) in enumerate(kernel_offsets(size)):
+        out = out + coefficients[:, j:j + 1] * padded[..., r + dy:r + dy + h, r + dx:r + dx + w]
+    return out
+
+
 def test_the_predicted_filter_is_a_per_pixel_filter_of_the_input_whose_weights_sum_to_one() -> None:
     torch.manual_seed(0)
     rgb = torch.rand(2, 3, 6, 7)
@@ -138,10 +150,7 @@ def test_the_predicted_filter_is_a_per_pixel_filter_of_the_input_whose_weights_s
     torch.testing.assert_close(apply_kernel(rgb, coefficients, 3), right - rgb)
     # random coefficients: x + the filter = the normalised sum over the 3x3 window, computed directly
     coefficients = torch.randn(2, 8, 6, 7)
-    padded = torch.nn.functional.pad(rgb, (1, 1, 1, 1), mode="replicate")
-    want = (1 - coefficients.sum(dim=1, keepdim=True)) * rgb
-    for j, (dy, dx) in enumerate(offsets):
-        want = want + coefficients[:, j:j + 1] * padded[..., 1 + dy:7 + dy, 1 + dx:8 + dx]
+    want = window_sum(rgb, coefficients, 3)
     torch.testing.assert_close(rgb + apply_kernel(rgb, coefficients, 3), want, rtol=1e-5, atol=1e-5)
     # the in-place banded version adds the same, with channels_last coefficients and any band height
     for rows in (1, 4, 16):
@@ -169,11 +178,7 @@ def test_the_filters_hand_written_gradient_is_autograds_through_the_direct_sum(s
     weight = torch.randn(2, 3, 7, 6)  # a loss that weighs every output differently
     (apply_kernel(rgb, coefficients, size) * weight).sum().backward()
     got, coefficients.grad = coefficients.grad, None
-    r = size // 2
-    padded = torch.nn.functional.pad(rgb, (r, r, r, r), mode="replicate")
-    direct = sum(coefficients[:, j:j + 1] * (padded[..., r + dy:r + dy + 7, r + dx:r + dx + 6] - rgb)
-                 for j, (dy, dx) in enumerate(kernel_offsets(size)))
-    (direct * weight).sum().backward()
+    ((window_sum(rgb, coefficients, size) - rgb) * weight).sum().backward()
     torch.testing.assert_close(got, coefficients.grad, rtol=1e-5, atol=1e-5)
     # bfloat16 coefficients (autocast) get a bfloat16 gradient; the input gets none
     half = coefficients.detach().to(torch.bfloat16).requires_grad_()
