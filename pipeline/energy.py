@@ -166,7 +166,8 @@ def _apply_rows(denoised: np.ndarray, across: np.ndarray, rows: slice, block: in
     factor += lower
     del lower
     part = denoised[rows]
-    part *= factor
+    with np.errstate(over="ignore"):  # a product past float32's range is inf, capped on the next line
+        part *= factor
     np.minimum(part, np.float32(upper), out=part)
 
 
