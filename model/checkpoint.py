@@ -156,6 +156,23 @@ def strip_optimizer(src: str | Path, dst: str | Path) -> None:
     _write(Path(dst), tensors, {**ckpt.header, "optimizer": None})
 
 
+def compact_optimizer(src: str | Path, dst: str | Path) -> None:
+    """Write ``src`` to ``dst`` with the optimiser's floating-point state (Adam's moments) in
+    bfloat16, everything else as it was, atomically: a resumable copy small enough to commit (a
+    u-balanced run with the filter: 8.5 -> 5.7 MB). ``train --resume`` from it continues the run
+    with moments rounded to 8 significant bits (:func:`restore_optimizer` casts them back to each
+    parameter's dtype), so the continuation follows the exact one closely, not bit for bit; the
+    header's ``optimizer.moments`` says so. Raises :class:`CheckpointError` when ``src`` has no
+    optimiser state."""
+    ckpt = read_checkpoint(src)
+    if not ckpt.header.get("optimizer"):
+        raise CheckpointError(f"{ckpt.path}: has no optimiser state to compact")
+    tensors = {k: (v.to(torch.bfloat16) if k.startswith("optim/") and v.is_floating_point()
+                   and not k.endswith("/step") else v)
+               for k, v in ckpt.tensors.items()}
+    _write(Path(dst), tensors, {**ckpt.header, "optimizer": {**ckpt.header["optimizer"], "moments": "bfloat16"}})
+
+
 def model_from_checkpoint(ckpt: Checkpoint) -> torch.nn.Module:
     """Rebuild the network from the header's model config and load its weights (strict)."""
     try:
