@@ -1,9 +1,10 @@
 """The inference-only network (model.inference_net) equals the training module in eval mode.
 
 Tolerances: transfer-space outputs of the folded network within 2e-5 absolute of the eager
-module (float32 rounding of the folded weights, a different summation order); the radiance of the
-whole chain (Denoiser) within rtol 2e-4 (the log transfer's inverse multiplies an absolute
-transfer-space error by about 11 x radiance).
+module (float32 rounding of the folded weights, a different summation order); the radiance y of the
+whole chain (Denoiser) within 2e-4 x (1 + y): the log transfer's inverse multiplies an absolute
+transfer-space error by 11.1 x (1 + y), so near black the bound is absolute (on an Intel Xeon
+with AVX-512 one pixel of radiance 0.0025 differed by 2e-6, over the 1e-6 this test once allowed).
 """
 from __future__ import annotations
 
@@ -96,7 +97,7 @@ def test_denoiser_optimized_equals_plain(tmp_path: Path, rng: np.random.Generato
     fast = Denoiser(path, max_memory_mb=0.2, precision="float32").denoise_array(img)
     plain = Denoiser(path, max_memory_mb=0.2, optimize=False).denoise_array(img)
     assert fast.tiles > 1
-    np.testing.assert_allclose(fast.image, plain.image, rtol=CHAIN_RTOL, atol=1e-6)
+    np.testing.assert_allclose(fast.image, plain.image, rtol=CHAIN_RTOL, atol=CHAIN_RTOL)
 
 
 def test_denoiser_refuses_flips_for_a_model_with_aux_inputs(tmp_path: Path) -> None:
