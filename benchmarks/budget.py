@@ -24,7 +24,7 @@ import numpy as np
 
 from benchmarks.eval_scenes import EVAL_DIR, RESULTS, EvalScene, eval_scenes, finish_record, run_record, \
     save_result
-from imaging.usage import COMMAND_ERRORS, OneLineParser, name_list
+from console.usage import COMMAND_ERRORS, OneLineParser, name_list
 from pipeline.run import RunConfig, run
 
 TOLERANCE = 0.2

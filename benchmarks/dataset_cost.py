@@ -20,7 +20,7 @@ from benchmarks.eval_scenes import RESULTS, finish_record, run_record
 from dataset_gen.config import DatasetConfig
 from dataset_gen.generate import generate_dataset
 from imaging.atomic_io import write_json_atomic
-from imaging.usage import COMMAND_ERRORS, OneLineParser, int_list, positive_int
+from console.usage import COMMAND_ERRORS, OneLineParser, int_list, positive_int
 from scenes.registry import FAMILIES
 
 

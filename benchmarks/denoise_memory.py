@@ -8,12 +8,12 @@ figure comes from a fresh child process that measures its own resident memory (`
 before each stage it resets the kernel's high-water mark (``clear_refs``), so a stage's peak is
 exact, and **scratch** = the stage's peak - the RSS at its start - the images it creates.
 
-* calibrate: one tile of the chain (:func:`model.infer.denoise_image` on an SxS image that is one
+* calibrate: one tile of the chain (:func:`denoise.chain.denoise_image` on an SxS image that is one
   window, the noise variance given to the models that take it) for each preset (random weights:
   memory does not depend on them) at several S, with the Denoiser's allocator setting
-  (:mod:`imaging.allocator`: the mmap threshold and huge pages); the folded network (the default) and the training module; a few
+  (:mod:`denoise.allocator`: the mmap threshold and huge pages); the folded network (the default) and the training module; a few
   with glibc's default setting, to show what the setting is for. Beside each, the estimate the
-  tile planner uses (:func:`model.infer.tile_bytes_per_pixel` x pixels + ``TILE_FIXED_BYTES``).
+  tile planner uses (:func:`denoise.chain.tile_bytes_per_pixel` x pixels + ``TILE_FIXED_BYTES``).
 * commands: per image size, the bundled demo scene at ``--spp`` in two halves through
   ``render-and-denoise`` (:func:`pipeline.run.run` as the CLI calls it, ``--no-compare``) per
   budget, then ``denoise`` (:func:`pipeline.denoise_file.denoise_file`) of an EXR holding that
@@ -40,7 +40,7 @@ from pathlib import Path
 from typing import Any
 
 from imaging.atomic_io import write_json_atomic
-from imaging.usage import size_list
+from console.usage import size_list
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results" / "denoise_memory.json"
@@ -69,12 +69,13 @@ def reset():
 _TILE_CHILD = _COMMON + r"""
 import numpy as np, torch
 if job["allocator"]:
-    from imaging.allocator import fix_mmap_threshold, use_huge_pages
+    from denoise.allocator import fix_mmap_threshold, use_huge_pages
     fix_mmap_threshold()
     use_huge_pages()
-from model.architectures import build_model, prepare_for_inference
+from model.architectures import build_model
+from denoise.folded import prepare_for_inference
 from model.config import PRESETS
-from model.infer import TILE_FIXED_BYTES, denoise_image, tile_bytes_per_pixel
+from denoise.chain import TILE_FIXED_BYTES, denoise_image, tile_bytes_per_pixel
 torch.manual_seed(0)
 config = PRESETS[job["preset"]]
 net = build_model(config).eval()
@@ -137,7 +138,7 @@ if job["command"] == "render-and-denoise":
         r = kept["render"]
         write_exr(job["write_input"], r.rgb, layers={"variance": r.variance}, metadata={"spp": job["spp"]})
 else:
-    import pipeline.denoise as denoise_mod
+    import denoise.denoiser as denoise_mod
     import pipeline.denoise_file as file_mod
     def input_images(image):
         file = sum(a.nbytes for part in image.exr.parts for a in part.channels.values()) if image.exr else 0

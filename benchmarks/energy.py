@@ -1,4 +1,4 @@
-"""What the energy correction (:mod:`pipeline.energy`) buys after the default path, and the
+"""What the energy correction (:mod:`denoise.energy`) buys after the default path, and the
 measurement behind its settings.
 
 Each image is denoised once as ``render-and-denoise`` does it with the correction off (the
@@ -40,12 +40,12 @@ from benchmarks.eval_scenes import (CEILING_DB, EVAL_DIR, RESULTS, SEED, finish_
                                     scored_renders)
 from benchmarks.validation import val_images
 from imaging.metrics import psnr
-from imaging.render import RenderResult
-from imaging.usage import COMMAND_ERRORS, OneLineParser, int_list
-from model.infer import image_exposure
-from pipeline.denoise import DEFAULT_MODEL, Denoiser
-from pipeline.energy import EnergySettings, apply_ratio, block_statistics, block_sums, correct_in_place, ratio_map
-from pipeline.oidn import oidn_denoise
+from rendering.render import RenderResult
+from console.usage import COMMAND_ERRORS, OneLineParser, int_list
+from denoise.chain import image_exposure
+from denoise.denoiser import DEFAULT_MODEL, Denoiser
+from denoise.energy import EnergySettings, apply_ratio, block_statistics, block_sums, correct_in_place, ratio_map
+from denoise.oidn import oidn_denoise
 
 NONE = "none"
 HALVES = "halves"
@@ -155,7 +155,7 @@ def seconds_720p(repeats: int = 5) -> float:
     import torch
 
     from imaging.blocks import pass_workers
-    from pipeline.denoise import DEFAULT_MAX_MEMORY_MB
+    from denoise.denoiser import DEFAULT_MAX_MEMORY_MB
 
     rng = np.random.default_rng(0)
     noisy = rng.gamma(1.0, 0.5, (720, 1280, 3)).astype(np.float32)

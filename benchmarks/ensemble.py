@@ -1,4 +1,4 @@
-"""What an ensemble of two denoisers (``--model A+B``, :mod:`pipeline.ensemble`) buys over each, and
+"""What an ensemble of two denoisers (``--model A+B``, :mod:`denoise.ensemble`) buys over each, and
 the measurement behind its window radius and ``lam``.
 
 Each image is denoised once by every member (the bare network, as ``render-and-denoise`` runs it:
@@ -35,12 +35,12 @@ from benchmarks.eval_scenes import (CEILING_DB, EVAL_DIR, RESULTS, SEED, finish_
                                     scored_renders)
 from benchmarks.validation import val_images
 from imaging.metrics import psnr
-from imaging.render import RenderResult
-from imaging.usage import COMMAND_ERRORS, OneLineParser, int_list, name_list, positive_int
-from pipeline.denoise import Denoiser
-from pipeline.ensemble import DEFAULT_LAMBDA, DEFAULT_POWER, DEFAULT_RADIUS, combine
-from pipeline.noise_guard import guard, strength_for
-from pipeline.oidn import oidn_denoise
+from rendering.render import RenderResult
+from console.usage import COMMAND_ERRORS, OneLineParser, int_list, name_list, positive_int
+from denoise.denoiser import Denoiser
+from denoise.ensemble import DEFAULT_LAMBDA, DEFAULT_POWER, DEFAULT_RADIUS, combine
+from denoise.noise_guard import guard, strength_for
+from denoise.oidn import oidn_denoise
 
 Setting = tuple[int, float, float]  # (window radius, lam, power)
 MEAN = "mean"

@@ -18,7 +18,7 @@ import numpy as np
 from imaging.atomic_io import write_json_atomic, write_text_atomic
 from imaging.errors import DenoiserError
 from imaging.exr import read_exr
-from imaging.render import RenderResult
+from rendering.render import RenderResult
 from pipeline.evaluation import RenderSettings, render_input
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -35,11 +35,11 @@ from tqdm import tqdm
 from benchmarks.eval_scenes import (CEILING_DB, EVAL_DIR, RESULTS, SEED, EvalScene, eval_scenes, finish_record,
                                    run_record)
 from imaging.atomic_io import write_json_atomic, write_text_atomic
-from imaging.usage import COMMAND_ERRORS, OneLineParser, int_list, name_list
-from model.flips import FLIPS
-from model.precision import PRECISIONS
-from pipeline.denoise import Denoiser
-from pipeline.energy import settings_if
+from console.usage import COMMAND_ERRORS, OneLineParser, int_list, name_list
+from denoise.flips import FLIPS
+from denoise.precision import PRECISIONS
+from denoise.denoiser import Denoiser
+from denoise.energy import settings_if
 from pipeline.evaluation import BARE, OIDN, evaluate
 from pipeline.viewer import Page, Table, ViewerRow, ViewerSet, flip_map
 
@@ -171,14 +171,14 @@ def build_parser() -> OneLineParser:
     p.add_argument("--out", type=Path, default=RESULTS)
     p.add_argument("--report-spp", type=int, help="spp whose images evaluate.html shows (default: the lowest)")
     p.add_argument("--precisions", type=name_list, default=("auto",),
-                   help="float formats of the networks, each model in each (model.precision; "
+                   help="float formats of the networks, each model in each (denoise.precision; "
                         "default auto: what a user on this CPU gets); a model in a second format "
                         "is named MODEL@FORMAT")
     p.add_argument("--flips", type=int_list, default=(1,),
-                   help="test-time flips (model.flips: 1, 2, 4), each model with each; a model with "
+                   help="test-time flips (denoise.flips: 1, 2, 4), each model with each; a model with "
                         "N > 1 flips is named MODEL+flipsN")
     p.add_argument("--energy", type=name_list, default=("on",),
-                   help="the energy correction (pipeline.energy): on, off or on,off, each model with each; "
+                   help="the energy correction (denoise.energy): on, off or on,off, each model with each; "
                         "a model without it is named MODEL+no-energy")
     p.add_argument("--quiet", action="store_true", help="no progress bar and no table")
     return p

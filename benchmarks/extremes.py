@@ -10,13 +10,13 @@ converged 4096-spp image before and after denoising, and peak memory denoising a
   plus the largest output for an all-zero image and the interior error for constant images.
 * converged: the demo at 4096 spp (24 px; without --quick also 64 px) against a 16384-spp
   reference: tonemapped PSNR of the noisy render, the model alone and the model with the noise
-  guard (pipeline/noise_guard.py, render-and-denoise's default).
+  guard (denoise/noise_guard.py, render-and-denoise's default).
 * memory: a child process denoises a WxH HDR image (default 7680x4320, --quick 960x540) under
   ``--max-memory-mb``; its peak RSS (ru_maxrss) against its RSS before the call (model loaded,
   image in RAM, one small warm-up image denoised).
 
 Prints a table and writes benchmarks/results/extremes.json (the entry of the other mode is kept).
-The model defaults to the shipped default (pipeline.denoise.DEFAULT_MODEL); an ensemble's members
+The model defaults to the shipped default (denoise.denoiser.DEFAULT_MODEL); an ensemble's members
 run as for the spp of each image (energy: 16; constants, zero and memory: 1; the default runs two
 networks at any spp, its U-Nets of one shape).
 """
@@ -40,9 +40,9 @@ import numpy as np
 from benchmarks.eval_scenes import eval_scenes
 from imaging.errors import DenoiserError
 from imaging.metrics import psnr
-from imaging.render import render
-from pipeline.denoise import Denoiser
-from pipeline.ensemble import SEPARATOR
+from rendering.render import render
+from denoise.denoiser import Denoiser
+from denoise.ensemble import SEPARATOR
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results" / "extremes.json"

@@ -2,7 +2,7 @@
 
 For each size (128x128, 256x256, 1280x720, 1920x1080) and each model (presets with random
 weights and non-trivial BatchNorm statistics — weights do not change speed — or checkpoint
-files) it times what a user's call costs: :meth:`pipeline.denoise.Denoiser.denoise_array` on a
+files) it times what a user's call costs: :meth:`denoise.denoiser.Denoiser.denoise_array` on a
 render made of two halves (image + variance: sanitise, exposure, transfer, noise channels, tiles,
 the folded network, inverse, noise guard), as for a render of ``SPP`` (1) samples per pixel, so an
 ensemble whose members are limited to spp ranges runs its low-spp ones (the default: two networks
@@ -22,9 +22,9 @@ five processes at 128^2, and OIDN 25-43 ms), so one process is one sample of it.
 figure is the median of all runs of all processes; beside it the range of the per-process
 ratios to OIDN (``process_s_per_mp``: each process's median).
 
-Each model runs in every ``--precisions`` float format (:mod:`model.precision`; a bfloat16 column
+Each model runs in every ``--precisions`` float format (:mod:`denoise.precision`; a bfloat16 column
 is named ``model@bfloat16``), or only in the one its ``--models`` entry names (``fast+u-high@auto``:
-an ensemble, :mod:`pipeline.ensemble`, each member in its own ``auto`` format); the JSON records
+an ensemble, :mod:`denoise.ensemble`, each member in its own ``auto`` format); the JSON records
 whether the CPU computes bfloat16 natively.
 
 Also prints where the time of one call goes at the smallest size (stages of the chain).
@@ -50,15 +50,15 @@ import torch
 
 from benchmarks.readme_tables import ratio_range_text
 from imaging.atomic_io import write_json_atomic
-from imaging.usage import size_list
+from console.usage import size_list
 from model.architectures import build_model
 from model.checkpoint import save_checkpoint
 from model.config import PRESETS, preset
-from model.precision import PRECISIONS, native_bfloat16
+from denoise.precision import PRECISIONS, native_bfloat16
 from model.unet import macs_per_pixel
-from pipeline.denoise import DEFAULT_MODEL, Denoiser, ensemble_members, resolve_members, shipped_members
-from pipeline.ensemble import SEPARATOR, range_suffix, spp_range
-from pipeline.oidn import oidn_available, oidn_denoise
+from denoise.denoiser import DEFAULT_MODEL, Denoiser, ensemble_members, resolve_members, shipped_members
+from denoise.ensemble import SEPARATOR, range_suffix, spp_range
+from denoise.oidn import oidn_available, oidn_denoise
 
 RESULTS = Path(__file__).resolve().parent / "results" / "inference.json"
 SIZES = ((128, 128), (256, 256), (1280, 720), (1920, 1080))
@@ -67,8 +67,8 @@ SPP = 1  # the spp each call is made for: an ensemble's low-spp members run (the
 
 def _checkpoint(name: str, folder: Path) -> Path:
     """A preset with random weights (as after training: BN statistics, a non-zero output conv);
-    an ensemble ``A+B`` (:mod:`pipeline.ensemble`) the ``+``-joined paths of its members;
-    ``default`` the shipped default (:data:`pipeline.denoise.DEFAULT_MODEL`)."""
+    an ensemble ``A+B`` (:mod:`denoise.ensemble`) the ``+``-joined paths of its members;
+    ``default`` the shipped default (:data:`denoise.denoiser.DEFAULT_MODEL`)."""
     if name == "default":  # the shipped default ensemble, its members' own weights and spp ranges
         return Path(SEPARATOR.join(shipped_members(SEPARATOR.join(DEFAULT_MODEL))))
     if len(ensemble_members(name)) > 1:
@@ -135,11 +135,11 @@ def measure_size(width: int, height: int, models: dict[str, Denoiser], repeat: i
 def stages(den: Denoiser, width: int, height: int, repeat: int) -> dict[str, float]:
     """Median milliseconds of the chain's stages for one call (profiled with torch's profiler
     would perturb them; these are the callable pieces timed alone)."""
-    from model.infer import exposure_scale
+    from denoise.chain import exposure_scale
     from model.noise_input import noise_channels
     from model.transfer import get_transfer
-    from pipeline.denoise import count_invalid
-    from pipeline.noise_guard import guard_in_place
+    from denoise.denoiser import count_invalid
+    from denoise.noise_guard import guard_in_place
 
     img, var = _render(width, height)
     transfer = get_transfer(den.config.transfer)
@@ -230,7 +230,7 @@ def main() -> None:
                    help="preset names (random weights), checkpoint files, ensembles A+B or 'default' (the "
                         "shipped default); NAME@PRECISION runs that model in that float format only")
     p.add_argument("--precisions", default="float32,bfloat16",
-                   help="float formats of the networks (model.precision.PRECISIONS)")
+                   help="float formats of the networks (denoise.precision.PRECISIONS)")
     p.add_argument("--repeat", type=int, default=5)
     p.add_argument("--processes", type=int, default=3, help="fresh processes whose runs are pooled")
     p.add_argument("--threads", type=int, default=0, help="torch threads (0: the Denoiser's choice)")

@@ -1,4 +1,4 @@
-"""What the noise guard (pipeline/noise_guard.py) costs where renders are noisy and buys where they
+"""What the noise guard (denoise/noise_guard.py) costs where renders are noisy and buys where they
 have converged; the measurement behind its default window and strength.
 
 Every render is the one ``render-and-denoise`` makes (:mod:`pipeline.evaluation`: two independent
@@ -38,10 +38,10 @@ from tqdm import tqdm
 from benchmarks.eval_scenes import (CEILING_DB, RESULTS, ROOT, SEED, EvalScene, eval_scenes, finish_record,
                                     run_record, save_result)
 from imaging.metrics import psnr
-from imaging.usage import COMMAND_ERRORS, OneLineParser, name_list
-from pipeline.denoise import Denoiser
+from console.usage import COMMAND_ERRORS, OneLineParser, name_list
+from denoise.denoiser import Denoiser
 from pipeline.evaluation import BARE, OIDN, RenderSettings, denoise_outputs, render_input
-from pipeline.noise_guard import DEFAULT_PIVOT_SPP, DEFAULT_RADIUS, guard, strength_for
+from denoise.noise_guard import DEFAULT_PIVOT_SPP, DEFAULT_RADIUS, guard, strength_for
 
 DEMO = ROOT / "scenes" / "examples" / "demo.xml"
 REF_SEED = 1_000_003

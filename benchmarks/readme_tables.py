@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from imaging.atomic_io import write_text_atomic
-from imaging.usage import OneLineParser
+from console.usage import OneLineParser
 
 ROOT = Path(__file__).resolve().parents[1]
 MARKERS = re.compile(r"(<!-- table:([a-z0-9_]+) -->\n)(.*?)(<!-- /table -->)", re.S)
@@ -178,7 +178,7 @@ def energy(results: Results) -> list[str]:
     """Mean PSNR without the energy correction, with each setting tried (the default first) and
     OIDN, per set and spp; the default's images made worse and worst change; radiance kept."""
     from benchmarks.energy import label  # the benchmark's own column names
-    from pipeline.energy import EnergySettings
+    from denoise.energy import EnergySettings
 
     data = results.json("energy")
     labels = [label(EnergySettings(**s)) for s in data["settings"]]
@@ -209,7 +209,7 @@ def ensemble(results: Results) -> list[str]:
     data = results.json("ensemble")
     lines = [caption("python -m benchmarks.ensemble", "benchmarks/results/ensemble.json", data,
                      f"Members {' + '.join(data['members'])}: each alone, their plain mean, and combined with "
-                     "each setting (r: window radius, lam: the regulariser, p: the power of pipeline/ensemble.py); every "
+                     "each setting (r: window radius, lam: the regulariser, p: the power of denoise/ensemble.py); every "
                      "candidate through the noise guard as the default path; OIDN colour-only on the same "
                      "images. Mean PSNR dB; validation: held-out procedural scenes (the tuning set); eval: "
                      "../shared/eval-scenes, ceiling >= 40 dB, seed 7."), ""]
@@ -260,7 +260,7 @@ def inference(results: Results) -> list[str]:
                "ratios)" if processes > 1 else "")
             + "; OIDN 2.5 colour-only on the same image in "
             "the same run; the last columns: each model's time over OIDN's. `model@bfloat16`: the network in "
-            "bfloat16 (model/precision.py; this CPU computes it natively: "
+            "bfloat16 (denoise/precision.py; this CPU computes it natively: "
             f"{'yes' if data['machine'].get('native_bfloat16') else 'no'})."
             + (" MACs per pixel: " + ", ".join(f"{n} {macs[n] / 1e3:.1f}k" for n in models if n in macs) + "."
                if macs else ""))
@@ -483,10 +483,10 @@ def denoise_tile_memory(results: Results) -> list[str]:
         cells.setdefault((r["preset"], r["setting"]), {})[r["side"]] = \
             f"{r['scratch_mb']:,.0f} / {r['estimate_mb']:,.0f}"
     rows = [[preset, setting, *(by_side.get(s, "") for s in sides)] for (preset, setting), by_side in cells.items()]
-    note = ("One window of the whole chain (model.infer.denoise_image on an SxS image, random weights, the "
+    note = ("One window of the whole chain (denoise.chain.denoise_image on an SxS image, random weights, the "
             "variance given to the models that take it) in a fresh process: resident scratch beyond the output / "
-            "the tile planner's estimate (model.infer.tile_bytes_per_pixel x pixels + TILE_FIXED_BYTES), MB. "
-            "'glibc default': without imaging/allocator.py's fixed mmap threshold.")
+            "the tile planner's estimate (denoise.chain.tile_bytes_per_pixel x pixels + TILE_FIXED_BYTES), MB. "
+            "'glibc default': without denoise/allocator.py's fixed mmap threshold.")
     return [caption("python -m benchmarks.denoise_memory", "benchmarks/results/denoise_memory.json", data, note), "",
             *_table(["preset", "setting", *(f"{s}x{s}" for s in sides)], rows, right=2)]
 

@@ -1,4 +1,4 @@
-"""Peak memory of the render step (imaging.render.render_loaded) at 1080p, 4K and 8K.
+"""Peak memory of the render step (rendering.render.render_loaded) at 1080p, 4K and 8K.
 
     .venv/bin/python benchmarks/render_memory.py [--before REV] [--budgets 256,1024] [--spp 2]
         [--sizes 1920x1080,3840x2160,7680x4320] [--parts calibrate,sizes] [--quick]
@@ -10,7 +10,7 @@ the peak is the render's alone; **scratch** = peak - RSS before the render - the
 (what ``--max-memory-mb`` bounds). Each child starts with an empty Dr.Jit kernel cache (its own
 HOME), so kernel compilation is always counted: the worst case.
 
-* calibrate: the memory model of imaging/render_crops.py. Scratch of one-piece renders at two
+* calibrate: the memory model of rendering/render_crops.py. Scratch of one-piece renders at two
   film sizes (slope = bytes per pixel, intercept = fixed cost) for 3 and 9 channels, with and
   without halves; and of one pass at 1, 16 and 64 spp on one film (slope = bytes per sample in
   flight).
@@ -34,7 +34,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from imaging.usage import size_list
+from console.usage import size_list
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results" / "render_memory.json"
@@ -47,7 +47,7 @@ import gc, json, sys, time
 job = json.loads(sys.argv[1])
 import numpy as np
 try:  # the working directory is the checkout measured
-    from imaging.render import load_scene, prepare, render_loaded
+    from rendering.render import load_scene, prepare, render_loaded
 except ImportError:  # a revision from before the foundation package
     from pipeline.render import load_scene, prepare, render_loaded
 

@@ -60,7 +60,7 @@ from dataset_gen.config import DatasetConfig
 from dataset_gen.generate import GenerateSummary, generate_dataset
 from model.config import PRESETS
 from model.architectures import build_model, count_parameters
-from model.synthetic import write_synthetic_dataset
+from training.synthetic import write_synthetic_dataset
 from scenes.registry import FAMILIES
 
 RESULTS = Path(__file__).resolve().parent / "results" / "scaleout.json"
@@ -139,7 +139,7 @@ def _in_fresh_process(fn: Callable[..., dict[str, Any]], *args: Any) -> dict[str
 def _warm(cfg: DatasetConfig, threads: int | None) -> None:
     """Untimed, in a rendering process: select the variant, set Mitsuba's threads (None: all
     cores) and render one tiny scene, so start-up costs stay out of the timed run."""
-    from imaging.backend import select_variant
+    from rendering.backend import select_variant
 
     select_variant()
     if threads:
@@ -200,8 +200,8 @@ def measure_dask(cfg: DatasetConfig, scenes: int, workers: int) -> dict[str, Any
 
 def _train(setting: str, data: Path, out: Path, batch: int, threads: int, args: argparse.Namespace,
            extra: tuple[str, ...] = ()) -> dict[str, Any]:
-    """One ``train`` run (``python -m model.cli``) with ``threads`` torch threads per process."""
-    cmd = [sys.executable, "-m", "model.cli", "--data", str(data), "--out", str(out), "--preset", args.preset,
+    """One ``train`` run (``python -m training.cli``) with ``threads`` torch threads per process."""
+    cmd = [sys.executable, "-m", "training.cli", "--data", str(data), "--out", str(out), "--preset", args.preset,
            "--batch", str(batch), "--steps", str(args.steps), "--threads", str(threads), "--log-every", "1",
            "--val-every", "0", "--ckpt-every", str(args.steps), "--no-progress", *extra]
     env = {**BASE_ENV, "OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads)}

@@ -38,7 +38,7 @@ from typing import Any
 import numpy as np
 
 from imaging.atomic_io import write_json_atomic
-from model.run_log import RunLog, validation_curve
+from training.run_log import RunLog, validation_curve
 
 RESULTS = Path(__file__).resolve().parent / "results"
 UNET = ["--preset", "u-balanced", "--patch", "128", "--batch", "8", "--lr", "1e-3", "--lr-warmup", "100"]
@@ -81,8 +81,8 @@ def _at(curve: list[dict[str, Any]], minutes: float) -> dict[str, Any] | None:
 def hidden_noise_psnr(run: Path) -> dict[str, Any]:
     """Validate the run's last checkpoint with and without its noise input on its own val scenes."""
     from model.checkpoint import load_model
-    from model.dataset import load_val_images, read_manifest
-    from model.validate import Validator
+    from training.dataset import load_val_images, read_manifest
+    from training.validate import Validator
 
     model, config, meta = load_model(run / "last.ckpt")
     train = meta["train_config"]

@@ -2,9 +2,9 @@
 
 ``Denoiser(skip_below=t)`` leaves the 64-px cells whose transfer-space noise (from the render's
 two halves) is below ``t`` out of the network: they come back as the render, and the network runs
-on the smallest aligned rectangle holding every noisy cell (:func:`model.infer.denoise_image`).
+on the smallest aligned rectangle holding every noisy cell (:func:`denoise.chain.denoise_image`).
 The noise guard would keep the render there anyway; this measures what skipping changes on the
-user's path (render in halves -> :meth:`pipeline.denoise.Denoiser.denoise_render`: noise input,
+user's path (render in halves -> :meth:`denoise.denoiser.Denoiser.denoise_render`: noise input,
 network, guard), for three renders of the demo scene:
 
 * ``converged`` — 4096 spp;
@@ -34,12 +34,12 @@ import numpy as np
 
 from imaging.atomic_io import write_json_atomic
 from imaging.metrics import psnr
-from imaging.render import load_scene, prepare, render_loaded
+from rendering.render import load_scene, prepare, render_loaded
 from model.architectures import alignment
-from model.infer import noisy_region
+from denoise.chain import noisy_region
 from model.transfer import get_transfer
-from pipeline.denoise import Denoiser
-from pipeline.noise_guard import strength_for
+from denoise.denoiser import Denoiser
+from denoise.noise_guard import strength_for
 
 RESULTS = Path(__file__).resolve().parent / "results" / "skip.json"
 DEMO = Path(__file__).resolve().parents[1] / "scenes" / "examples" / "demo.xml"

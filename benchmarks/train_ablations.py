@@ -26,7 +26,7 @@ from pathlib import Path
 from typing import Any
 
 from imaging.atomic_io import write_text_atomic
-from model.run_log import RunLog
+from training.run_log import RunLog
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -44,7 +44,7 @@ def run_training(name: str, data: str, runs: Path, steps: int, val_every: int) -
     """Start (or resume) one ablation run through the ``train`` CLI."""
     out = runs / name
     # later options win in argparse: the variant's flags override the base ones
-    args = [sys.executable, "-m", "model.cli", "--data", data, "--out", str(out), "--steps", str(steps),
+    args = [sys.executable, "-m", "training.cli", "--data", data, "--out", str(out), "--steps", str(steps),
             "--val-every", str(val_every), "--log-every", "50", "--no-progress", *BASE, *RUNS[name]]
     if (out / "last.ckpt").exists():
         args.append("--resume")

@@ -1,6 +1,6 @@
 """Training throughput (patches/s) on the CPU, per model preset and per speed option.
 
-Every variant runs the trainer's real step (:func:`model.step.train_step`: forward, loss, NaN
+Every variant runs the trainer's real step (:func:`training.step.train_step`: forward, loss, NaN
 guard, backward, Adam) on 28x28 patches. Variants of one preset are measured round-robin, so a
 noisy neighbour slows them all alike; the median and best round are reported, together with the
 share of CPU time other processes used meanwhile. An equivalence check computes the loss and gradient of each
@@ -33,10 +33,10 @@ import torch
 
 from model.config import preset
 from model.architectures import build_model, count_parameters
-from model.patches import PatchConfig, TrainingPair, sample_batch
-from model.loss import denoising_loss
-from model.step import NonFiniteGuard, train_step
-from model.train import to_tensor
+from training.patches import PatchConfig, TrainingPair, sample_batch
+from training.loss import denoising_loss
+from training.step import NonFiniteGuard, train_step
+from training.train import to_tensor
 
 RESULTS = Path(__file__).resolve().parent / "results" / "train_throughput.json"
 PATCH = 28

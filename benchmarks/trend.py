@@ -23,8 +23,8 @@ from typing import Any
 import numpy as np
 
 from benchmarks.eval_scenes import RESULTS, run_record, save_result
-from imaging.usage import COMMAND_ERRORS, OneLineParser, int_list, positive_float
-from model.run_log import RunLog, validation_curve
+from console.usage import COMMAND_ERRORS, OneLineParser, int_list, positive_float
+from training.run_log import RunLog, validation_curve
 
 MIN_POINTS = 3
 FAR_HOURS = 10_000  # projections beyond this are shown as "> 10,000"
@@ -50,7 +50,7 @@ def fit(points: list[tuple[float, float]], target: float | None) -> dict[str, An
 
 def trend(curve: list[dict[str, Any]], spps: list[int], start: float = 0.5,
           offset_min: float = 0.0) -> dict[str, Any]:
-    """The fits of one run's :func:`model.run_log.validation_curve`: ``overall`` (mean over its
+    """The fits of one run's :func:`training.run_log.validation_curve`: ``overall`` (mean over its
     spp levels, against OIDN's mean) and ``per_spp``; the window is CPU time >= ``start`` times
     the last validation's (after adding ``offset_min``)."""
     if not curve:

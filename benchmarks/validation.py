@@ -3,7 +3,7 @@
 The trainer validates one model on its own run's held-out scenes, so two runs with different data
 report on different images. This scores every ``--models`` checkpoint on one set: the ``val`` split
 of each ``--data`` folder (scenes with index below ``--max-scenes``, at every spp the dataset has),
-as the trainer's validation does (:class:`model.validate.Validator`: the network in float32, whole
+as the trainer's validation does (:class:`training.validate.Validator`: the network in float32, whole
 images, tonemapped PSNR and relMSE), with the noisy input and OIDN 2.5 colour-only on the same
 images, per spp and overall.
 
@@ -21,13 +21,13 @@ from typing import Any
 
 from benchmarks.eval_scenes import RESULTS, finish_record, run_record, save_result
 from imaging.errors import DatasetError
-from imaging.usage import COMMAND_ERRORS, OneLineParser, name_list, positive_int
+from console.usage import COMMAND_ERRORS, OneLineParser, name_list, positive_int
 from model.checkpoint import load_model
-from model.dataset import ValImage, load_val_images, read_manifest
-from model.train import DATASET_ID_STRIDE
-from model.validate import Validator
-from pipeline.denoise import DEFAULT_MODEL, resolve_model
-from pipeline.ensemble import spp_range
+from training.dataset import ValImage, load_val_images, read_manifest
+from training.train import DATASET_ID_STRIDE
+from training.validate import Validator
+from denoise.denoiser import DEFAULT_MODEL, resolve_model
+from denoise.ensemble import spp_range
 
 
 def val_images(folders: list[Path], max_scenes: int | None, noise: bool) -> list[ValImage]:

@@ -12,8 +12,8 @@ from dataset_gen.cluster import SchedulerSpec, parse_scheduler
 from dataset_gen.config import DatasetConfig
 from dataset_gen.generate import generate_dataset
 from imaging.errors import DatasetError, DenoiserError
-from imaging.progress import tqdm_bars
-from imaging.usage import OneLineParser, int_list, name_list
+from console.progress import tqdm_bars
+from console.usage import OneLineParser, int_list, name_list
 
 
 def _resolution(text: str) -> tuple[int, int]:

@@ -106,7 +106,7 @@ def cluster_job(cfg: DatasetConfig, index: int, folder: Path, threads: int | Non
                 job: Job = run_job, client_code: dict[str, Any] | None = None) -> dict[str, Any]:
     """Worker side of one scene task: check this worker's code and Mitsuba against the client's
     (``client_code``: its :class:`CodeVersion` as a dict), then ``job(cfg, index, folder)``."""
-    from imaging.backend import select_variant
+    from rendering.backend import select_variant
 
     if client_code is not None:
         check_code(CodeVersion.from_dict(client_code), {_worker_name(): worker_code_version()})

@@ -22,8 +22,8 @@ from dataset_gen.config import DatasetConfig, open_dataset
 from dataset_gen.jobs import IMAGES_DIR, SCENES_DIR, run_job
 from dataset_gen.manifest import append_record, read_records, repair
 from imaging.atomic_io import TMP_PREFIX
-from imaging.backend import LLVM_VARIANT, resolve_variant
-from imaging.progress import ProgressFactory
+from rendering.backend import LLVM_VARIANT, resolve_variant
+from console.progress import ProgressFactory
 from imaging.errors import DatasetError
 
 
@@ -64,7 +64,7 @@ def remove_stale_temporaries(folder: Path) -> int:
 
 
 def _init_worker(threads: int) -> None:
-    from imaging.backend import select_variant
+    from rendering.backend import select_variant
 
     select_variant()
     import drjit as dr

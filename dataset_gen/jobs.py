@@ -17,7 +17,7 @@ from dataset_gen.config import DatasetConfig
 from imaging.exr import write_exr
 from imaging.metrics import RELMSE_EPS, tonemap
 from imaging.naming import image_name, scene_name
-from imaging.render import load_scene, prepare, render_loaded
+from rendering.render import load_scene, prepare, render_loaded
 
 IMAGES_DIR = "images"
 SCENES_DIR = "scenes"

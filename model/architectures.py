@@ -11,8 +11,6 @@ from torch import nn
 
 from model import unet
 from model.config import ModelConfig
-from model.inference_net import InferenceNet
-from model.inference_unet import InferenceUNet
 from model.network import FlatDenseNet
 
 
@@ -34,20 +32,13 @@ def alignment(config: ModelConfig) -> int:
     return unet.alignment(config) if config.multiscale else 1
 
 
-def prepare_for_inference(model: nn.Module, dtype: torch.dtype = torch.float32) -> nn.Module:
-    """A folded copy of a trained network for inference (equal up to float32 rounding; the
-    original is left unchanged): :mod:`model.inference_net` or :mod:`model.inference_unet`,
-    computing in ``dtype`` (:mod:`model.precision`; input and output stay float32)."""
-    return InferenceUNet(model, dtype) if model.config.multiscale else InferenceNet(model, dtype)
-
-
 def count_parameters(model: nn.Module) -> int:
     """Number of trainable parameters."""
     return sum(p.numel() for p in model.parameters() if p.requires_grad)
 
 
 # Resident bytes of a forward pass per byte of the tensors live_channels_per_pixel counts: oneDNN's
-# reordered weights and workspaces, the allocator's slack (with imaging/allocator.py's fixed mmap
+# reordered weights and workspaces, the allocator's slack (with denoise/allocator.py's fixed mmap
 # threshold), and for the training modules
 # their BatchNorm copies and concatenations. A bound of what benchmarks/denoise_memory.py --parts
 # calibrate measures (results/denoise_memory.json).
@@ -57,10 +48,10 @@ MODULE_ALLOWANCE = 1.6
 
 def inference_bytes_per_pixel(config: ModelConfig, folded: bool = True, itemsize: int = 4) -> float:
     """Peak resident bytes per input pixel of one forward pass of a tile, beyond a fixed cost
-    (:data:`model.infer.TILE_FIXED_BYTES`): the folded network's live tensors
+    (:data:`denoise.chain.TILE_FIXED_BYTES`): the folded network's live tensors
     (:func:`live_channels_per_pixel`) times the measured allowance of the folded network
     (``folded``) or of the training module. ``itemsize``: bytes per value of the folded network's
-    activations (2 in bfloat16, :mod:`model.precision`); its input image stays float32."""
+    activations (2 in bfloat16, :mod:`denoise.precision`); its input image stays float32."""
     live = live_channels_per_pixel(config)
     cimg = config.image_channels
     itemsize = itemsize if folded else 4
@@ -87,7 +78,7 @@ def live_channels_per_pixel(config: ModelConfig) -> float:
 
 
 def _unet_live_channels(config: ModelConfig) -> float:
-    """:func:`live_channels_per_pixel` of the folded multi-scale nets (:mod:`model.inference_unet`)."""
+    """:func:`live_channels_per_pixel` of the folded multi-scale nets (:mod:`denoise.inference_unet`)."""
     plan = unet._Widths(config, 1.0 if config.arch == "dense_unet" else unet.plain_width_scale(config))
     n, layers, cimg = config.levels, config.layers, config.image_channels
     share = [0.25 ** (i + 1) for i in range(n + 1)]

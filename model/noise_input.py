@@ -1,7 +1,7 @@
 """What the network is told about a render's noise: four channels made from its variance.
 
 A render made of two independent halves carries, per pixel and channel, an estimate ``V`` of the
-variance of its mean (:func:`imaging.render.half_variance`; a variance layer of an EXR is the
+variance of its mean (:func:`rendering.render.half_variance`; a variance layer of an EXR is the
 same thing). The network works in transfer space, so it is told how far one standard deviation
 moves each channel there::
 

@@ -34,7 +34,7 @@ Any H, W >= 1: the input is padded at the bottom and right by replicating its la
 up to a multiple of :func:`alignment` and the output cropped back. BatchNorm in eval mode is a
 per-channel affine map, so the network is translation-equivariant on the alignment grid:
 :func:`receptive_radius` bounds how far an output pixel looks, and tiles cut on the grid with that
-margin reproduce the whole-image output (:mod:`imaging.tiling`).
+margin reproduce the whole-image output (:mod:`denoise.tiling`).
 """
 from __future__ import annotations
 
@@ -336,7 +336,7 @@ def macs_per_pixel(config: ModelConfig, plain_scale: float | None = None, pool_f
     """Multiply-accumulates per input pixel of every convolution, counted from the channel plan.
 
     ``pool_first``: the transitions down pool before their 1x1 conv, as the folded inference
-    net does (:mod:`model.inference_unet`); False counts the training module, which convolves
+    net does (:mod:`denoise.inference_unet`); False counts the training module, which convolves
     first (what :func:`conv_macs_per_pixel` measures on it).
     """
     dense = config.arch == "dense_unet"

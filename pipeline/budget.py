@@ -29,10 +29,10 @@ from typing import Any
 import numpy as np
 
 from imaging.errors import DenoiserError
-from imaging.render import render_loaded
-from imaging.tiling import Core, plan_tiles
-from pipeline.denoise import DEFAULT_MODEL, WEIGHTS_DIR, Denoiser, ensemble_members, resolve_members, shipped_members
-from pipeline.ensemble import SEPARATOR
+from rendering.render import render_loaded
+from denoise.tiling import Core, plan_tiles
+from denoise.denoiser import DEFAULT_MODEL, WEIGHTS_DIR, Denoiser, ensemble_members, resolve_members, shipped_members
+from denoise.ensemble import SEPARATOR
 from pipeline.evaluation import RenderSettings, make_denoiser
 from pipeline.pareto import error_at_spp, metric_error
 
@@ -40,7 +40,7 @@ DENOISE_SHARE = 1.0 / 3.0
 PROBE_SHARE = 0.05
 MAX_SPP = 1 << 16
 # Best quality first, as measured on ../shared/eval-scenes (docs/scoreboard.md): the default
-# ensemble (pipeline/denoise.py's DEFAULT_MODEL: two networks at any known spp, `fast+u-high` above
+# ensemble (denoise/denoiser.py's DEFAULT_MODEL: two networks at any known spp, `fast+u-high` above
 # 16 spp) is above `fast` at every spp; the same without its flat members up to 16 spp (FASTER_DEFAULT:
 # the U-Net u-balanced-k5-lowspp alone there) 0.12-0.42 dB under it at 1-16 spp for 0.4x its time
 # (docs/multiscale.md), above the noisy-render specialists of 2026-12-04 alone; the shipped `fast` is level

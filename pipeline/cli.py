@@ -8,13 +8,13 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from imaging.progress import tqdm_bars
-from imaging.render import DEFAULT_MAX_MEMORY_MB
-from imaging.usage import OneLineParser, int_list, name_list, name_value, positive_float, positive_int
-from model.flips import FLIPS
-from model.precision import PRECISIONS
-from pipeline.denoise import DEFAULT_MODEL
-from pipeline.ensemble import SEPARATOR
+from console.progress import tqdm_bars
+from rendering.render import DEFAULT_MAX_MEMORY_MB
+from console.usage import OneLineParser, int_list, name_list, name_value, positive_float, positive_int
+from denoise.flips import FLIPS
+from denoise.precision import PRECISIONS
+from denoise.denoiser import DEFAULT_MODEL
+from denoise.ensemble import SEPARATOR
 from pipeline.evaluation import RenderSettings
 
 

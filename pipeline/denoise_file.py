@@ -4,7 +4,7 @@ Inputs: an EXR (single- or multi-part, any number of layers, float16 or float32)
 Radiance HDR file; or two EXRs holding independent halves of one render (``halves``). The colour
 layer is :func:`imaging.exr_layers.pick_color_layer`'s choice (or ``layer``); albedo and normal
 layers beside it go to models that use them. The variance of the image's Monte Carlo estimate,
-from the halves (:func:`imaging.render.half_variance`) or a variance layer, goes to the
+from the halves (:func:`rendering.render.half_variance`) or a variance layer, goes to the
 denoiser, which applies the noise guard with it. The output replaces the colour layer's channels
 and keeps every other layer, part and attribute (``rgb_only``: a plain RGB EXR); a ``.pfm`` or
 ``.hdr`` output path writes that format instead.
@@ -26,10 +26,10 @@ from imaging.exr_layers import (ALBEDO_WORDS, NORMAL_WORDS, VARIANCE_WORDS, ExrF
                                  describe_layers, find_aux_layer, pick_color_layer, read_exr_file,
                                  replace_layer, write_exr_file)
 from imaging.metrics import all_metrics
-from imaging.render import half_variance
-from pipeline.denoise import Denoiser
-from pipeline.energy import settings_if
-from pipeline.noise_guard import DEFAULT_STRENGTH, strength_for
+from rendering.render import half_variance
+from denoise.denoiser import Denoiser
+from denoise.energy import settings_if
+from denoise.noise_guard import DEFAULT_STRENGTH, strength_for
 
 HALVES_BYTES_PER_PIXEL = 128  # combine_halves: float64 temporaries of the mean and the variance
 

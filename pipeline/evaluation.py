@@ -27,10 +27,10 @@ import numpy as np
 from imaging.errors import DenoiserError
 from imaging.exr import read_exr
 from imaging.metrics import all_metrics, flip, psnr, relmse
-from imaging.render import DEFAULT_MAX_MEMORY_MB, RenderResult, load_scene, pass_seeds, prepare, render_loaded
-from pipeline.denoise import DenoiseResult, Denoiser
-from pipeline.energy import settings_if
-from pipeline.oidn import oidn_denoise
+from rendering.render import DEFAULT_MAX_MEMORY_MB, RenderResult, load_scene, pass_seeds, prepare, render_loaded
+from denoise.denoiser import DenoiseResult, Denoiser
+from denoise.energy import settings_if
+from denoise.oidn import oidn_denoise
 
 AOVS = ("albedo", "sh_normal")  # what a model with auxiliary inputs needs rendered
 OIDN = "oidn"
@@ -44,10 +44,10 @@ class RenderSettings:
     ``$parameters``; ``max_memory_mb`` bounds the render's films and the denoiser's tiles;
     ``noise_guard``: render in two halves and guard the models (off: one piece, the network's
     output as it is); ``skip_below``: with the halves, leave the parts whose noise is below this out
-    of the network (:class:`pipeline.denoise.Denoiser`; None: run it everywhere); ``precision``: the
-    denoisers' float format (:mod:`model.precision`); ``flips``: test-time flips of the networks
-    (:mod:`model.flips`); ``energy``: match the output's local means to the render's
-    (:mod:`pipeline.energy`); the reference is an EXR file or a render at ``reference_spp`` (another seed)."""
+    of the network (:class:`denoise.denoiser.Denoiser`; None: run it everywhere); ``precision``: the
+    denoisers' float format (:mod:`denoise.precision`); ``flips``: test-time flips of the networks
+    (:mod:`denoise.flips`); ``energy``: match the output's local means to the render's
+    (:mod:`denoise.energy`); the reference is an EXR file or a render at ``reference_spp`` (another seed)."""
 
     scene: str
     resolution: tuple[int, int] | None = None

@@ -23,13 +23,13 @@ from imaging.errors import DenoiserError
 from imaging.exr import write_exr
 from imaging.metrics import percentile
 from imaging.peak_rss import PeakRSS
-from imaging.render import RenderResult
+from rendering.render import RenderResult
 from pipeline.budget import BudgetPlan, budget_candidates, plan_run
-from pipeline.denoise import DenoiseResult, Denoiser
+from denoise.denoiser import DenoiseResult, Denoiser
 from pipeline.evaluation import (RenderSettings, aovs_for, check_reference, denoise_output, make_denoiser, read_reference,
                                  render_input, render_reference, score)
-from pipeline.noise_guard import DEFAULT_PIVOT_SPP, DEFAULT_RADIUS, strength_for
-from pipeline.oidn import oidn_available
+from denoise.noise_guard import DEFAULT_PIVOT_SPP, DEFAULT_RADIUS, strength_for
+from denoise.oidn import oidn_available
 from pipeline.report import write_comparison, write_previews, write_report
 
 

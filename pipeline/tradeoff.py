@@ -18,11 +18,11 @@ from typing import Any
 
 from imaging.atomic_io import json_safe, write_json_atomic
 from imaging.errors import DenoiserError
-from imaging.progress import ProgressBar, ProgressFactory
-from imaging.render import RenderResult
+from console.progress import ProgressBar, ProgressFactory
+from rendering.render import RenderResult
 from model.config import PRESETS
-from pipeline.denoise import DEFAULT_MODEL, Denoiser, ensemble_members, resolve_members
-from pipeline.ensemble import SEPARATOR
+from denoise.denoiser import DEFAULT_MODEL, Denoiser, ensemble_members, resolve_members
+from denoise.ensemble import SEPARATOR
 from pipeline.evaluation import (OIDN, Output, RenderSettings, aovs_for, check_reference, denoise_output, make_denoiser,
                                  read_reference, render_input, render_reference, score)
 from pipeline.pareto import ERROR_OF_METRIC, equal_quality, metric_error, pareto_front

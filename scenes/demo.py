@@ -64,7 +64,7 @@ def write_demo_reference(folder: Path = EXAMPLES_DIR, spp: int = REFERENCE_SPP) 
     from importlib import metadata
 
     from imaging.exr import write_exr
-    from imaging.render import render
+    from rendering.render import render
 
     result = render(folder / DEMO_NAME, spp, seed=REFERENCE_SEED, resolution=DEMO_RESOLUTION)
     path = folder / REFERENCE_NAME

@@ -3,7 +3,7 @@
 Matrices act on column vectors (``p' = M @ p``) in Mitsuba's right-handed, Y-up world; angles are
 in degrees. :func:`to_mitsuba` turns the final float64 matrix into a ``drjit.scalar.Matrix4f64``,
 the form every ``to_world`` / ``to_uv`` in our scene dicts takes: unlike ``mi.ScalarTransform4f``
-it can be deep-copied (``imaging.scene_io`` copies dicts), and Mitsuba inverts it in double
+it can be deep-copied (``rendering.scene_io`` copies dicts), and Mitsuba inverts it in double
 precision exactly as it does an XML ``<matrix>`` (a float32 ``Matrix4f`` is inverted in float32,
 which differs in the last bits), so a dict and its XML export render identically.
 """
@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from imaging.backend import select_variant
+from rendering.backend import select_variant
 
 Vec3 = Sequence[float]
 

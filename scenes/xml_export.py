@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from imaging.atomic_io import write_bytes_atomic, write_text_atomic
-from imaging.backend import select_variant
+from rendering.backend import select_variant
 from imaging.exr import write_exr
 from scenes.spec import GeneratedScene, check_asset_name
 

@@ -6,7 +6,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from imaging.backend import select_variant
+from rendering.backend import select_variant
 
 
 @pytest.fixture

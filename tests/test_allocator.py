@@ -12,7 +12,7 @@ import pytest
 _CHILD = """
 import json, sys
 import numpy as np
-from imaging.allocator import fix_mmap_threshold
+from denoise.allocator import fix_mmap_threshold
 
 def rss():
     for line in open("/proc/self/status"):
@@ -45,7 +45,7 @@ def test_fixed_threshold_returns_freed_blocks_at_once() -> None:
 
 _THP_CHILD = """
 import json, sys
-from imaging.allocator import use_huge_pages
+from denoise.allocator import use_huge_pages
 asked = use_huge_pages()
 import torch
 block = torch.ones(16 * 2**20 // 4)  # 16 MiB, touched

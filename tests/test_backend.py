@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from imaging.backend import (
+from rendering.backend import (
     MIN_LLVM_MAJOR,
     SCALAR_VARIANT,
     find_libllvm,

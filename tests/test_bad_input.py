@@ -2,7 +2,7 @@
 code, no traceback, and nothing written that looks complete but is not.
 
 Commands: ``render-and-denoise`` (pipeline.cli.main), ``denoise`` (pipeline.cli.denoise_main),
-``train`` (model.cli.main), ``generate-dataset`` (dataset_gen.cli.main), called in-process. stderr
+``train`` (training.cli.main), ``generate-dataset`` (dataset_gen.cli.main), called in-process. stderr
 is captured at the file-descriptor level, so what native libraries (OpenEXR, Mitsuba) print counts.
 A full disk is simulated by failing ``fsync`` (and the checkpoint writer) with ENOSPC; a read-only
 folder is a real one (mode 555, made immutable with ``chattr +i`` when running as root).
@@ -30,11 +30,11 @@ from dataset_gen.manifest import read_records
 from imaging.atomic_io import TMP_PREFIX
 from imaging.errors import SceneError
 from imaging.exr import read_exr, write_exr
-from imaging.scene_io import prepare_xml
+from rendering.scene_io import prepare_xml
 from model.checkpoint import read_checkpoint
-from model.cli import main as train_main
-from model.dataset import load_val_images, read_manifest
-from model.synthetic import write_synthetic_dataset
+from training.cli import main as train_main
+from training.dataset import load_val_images, read_manifest
+from training.synthetic import write_synthetic_dataset
 from pipeline.cli import denoise_main
 from pipeline.cli import main as render_main
 from tests.test_denoise import write_tiny_checkpoint

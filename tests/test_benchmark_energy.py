@@ -6,9 +6,9 @@ from pathlib import Path
 import pytest
 
 from benchmarks.energy import NONE, label, markdown, parse_settings, summarize, validation_rows
-from model.synthetic import write_synthetic_dataset
-from pipeline.denoise import Denoiser
-from pipeline.energy import EnergySettings
+from training.synthetic import write_synthetic_dataset
+from denoise.denoiser import Denoiser
+from denoise.energy import EnergySettings
 from tests.test_benchmark_validation import _checkpoint
 
 

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from benchmarks.ensemble import MEAN, label, markdown_table, summarize, validation_rows
-from model.synthetic import write_synthetic_dataset
-from pipeline.denoise import Denoiser
+from training.synthetic import write_synthetic_dataset
+from denoise.denoiser import Denoiser
 from tests.test_benchmark_validation import _checkpoint
 
 

@@ -6,8 +6,8 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.inference import SPP, _checkpoint, _macs, denoiser_macs
-from pipeline.denoise import DEFAULT_MODEL, WEIGHTS_DIR, Denoiser, ensemble_members, shipped_members
-from pipeline.ensemble import SEPARATOR
+from denoise.denoiser import DEFAULT_MODEL, WEIGHTS_DIR, Denoiser, ensemble_members, shipped_members
+from denoise.ensemble import SEPARATOR
 
 
 def test_default_is_the_shipped_ensemble_with_its_spp_ranges(tmp_path: Path) -> None:

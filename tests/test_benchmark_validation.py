@@ -11,9 +11,9 @@ from benchmarks.validation import build_parser, main, model_specs, score
 from model.architectures import build_model
 from model.checkpoint import save_checkpoint
 from model.config import ModelConfig
-from model.synthetic import write_synthetic_dataset
-from pipeline.denoise import DEFAULT_MODEL
-from pipeline.ensemble import spp_range
+from training.synthetic import write_synthetic_dataset
+from denoise.denoiser import DEFAULT_MODEL
+from denoise.ensemble import spp_range
 
 IDENTITY = ModelConfig(layers=2, growth=4, init_features=8, transfer="pu", output="residual")
 

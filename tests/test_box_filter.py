@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 
-from imaging.box_filter import box_mean_2d, box_sum_2d
+from denoise.box_filter import box_mean_2d, box_sum_2d
 
 
 def box_mean(img: np.ndarray, radius: int) -> np.ndarray:

@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from imaging.tiling import plan_tiles
+from denoise.tiling import plan_tiles
 from pipeline import budget
 from pipeline.evaluation import RenderSettings
 from pipeline.budget import (BudgetError, RenderCost, budget_candidates, denoise_seconds, fit_spp,

@@ -23,8 +23,8 @@ import torch
 from imaging.atomic_io import TMP_PREFIX
 from imaging.exr import read_exr
 from model.checkpoint import read_checkpoint
-from model.cli import main as train_main
-from model.synthetic import write_synthetic_dataset
+from training.cli import main as train_main
+from training.synthetic import write_synthetic_dataset
 from pipeline.cli import main as render_main
 from tests.test_denoise import write_tiny_checkpoint
 
@@ -79,7 +79,7 @@ def test_kill_9_during_train_then_resume_matches_a_straight_run(tmp_path: Path, 
                                   "threads": 1, "prefetch": True}))
     killed, straight = tmp_path / "killed", tmp_path / "straight"
     common = ["--data", str(data), "--config", str(config), "--steps", "60"]
-    assert _kill_when([sys.executable, "-m", "model.cli", "--out", str(killed), *common],
+    assert _kill_when([sys.executable, "-m", "training.cli", "--out", str(killed), *common],
                       lambda: _checkpoint_step(killed / "last.ckpt") >= 5), "train ended before the kill"
     # What the kill left: a whole checkpoint (the one before, if it died mid-write) and a log.
     step = _checkpoint_step(killed / "last.ckpt")

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from imaging.exr import read_exr
-from imaging.render import render
+from rendering.render import render
 from scenes.demo import DEMO_NAME, DEMO_RESOLUTION, EXAMPLES_DIR, REFERENCE_NAME, REFERENCE_SPP
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -12,10 +12,10 @@ from imaging.errors import DenoiserError
 from model.architectures import build_model
 from model.checkpoint import save_checkpoint
 from model.config import ModelConfig
-from model.infer import image_exposure
-from pipeline.denoise import Denoiser, count_invalid
-from pipeline.energy import correct_in_place
-from pipeline.noise_guard import blend_weight, clean_render, guard
+from denoise.chain import image_exposure
+from denoise.denoiser import Denoiser, count_invalid
+from denoise.energy import correct_in_place
+from denoise.noise_guard import blend_weight, clean_render, guard
 
 TINY = ModelConfig(layers=3, growth=4, init_features=8)
 
@@ -94,7 +94,7 @@ def test_guard_per_tile_is_the_whole_image_guard(ckpt: Path, max_memory_mb: floa
 @pytest.mark.parametrize("with_variance", [True, False])
 def test_energy_correction_follows_the_guard(ckpt: Path, with_variance: bool) -> None:
     """With or without a variance (guard or none), the output is the uncorrected one matched by
-    pipeline.energy at the exposure the network used, bit for bit; energy=None leaves it alone."""
+    denoise.energy at the exposure the network used, bit for bit; energy=None leaves it alone."""
     img, variance = _with_noise(61, 47, seed=6)
     img *= np.linspace(0.5, 1.5, 47, dtype=np.float32)[None, :, None]
     variance = variance if with_variance else None
@@ -180,11 +180,11 @@ def test_bad_arguments_raise_clear_errors(tmp_path: Path, ckpt: Path) -> None:
 def test_resolve_model_finds_shipped_checkpoints_by_name(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """A preset or another shipped checkpoint's bare name -> model/weights/NAME.ckpt; a file of that
     name in the working folder, or any path, is taken as given; a preset without weights is an error."""
-    from pipeline import denoise
-    from pipeline.denoise import resolve_model
+    from denoise import denoiser
+    from denoise.denoiser import resolve_model
     weights = tmp_path / "weights"
     weights.mkdir()
-    monkeypatch.setattr(denoise, "WEIGHTS_DIR", weights)
+    monkeypatch.setattr(denoiser, "WEIGHTS_DIR", weights)
     monkeypatch.chdir(tmp_path)
     special = write_tiny_checkpoint(weights / "my-special.ckpt")
     assert resolve_model("my-special") == special

@@ -13,9 +13,9 @@ from imaging.errors import DenoiserError
 from imaging.exr import read_exr, write_exr
 from imaging.exr_layers import read_exr_file
 from pipeline.cli import denoise_main
-from pipeline.denoise import Denoiser
+from denoise.denoiser import Denoiser
 from pipeline.denoise_file import combine_halves, read_input
-from pipeline.noise_guard import strength_for
+from denoise.noise_guard import strength_for
 from tests.test_denoise import write_tiny_checkpoint
 from tests.test_exr_layers import blender, mitsuba_aov, multipart, planes
 

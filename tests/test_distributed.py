@@ -20,12 +20,12 @@ import torch
 
 from imaging.errors import ConfigError
 from model.checkpoint import read_checkpoint
-from model.cli import build_parser, main, resume_command
-from model.distributed import RankInfo, ShardSource, available_cpus, choose_threads, ddp_config, rank_from_env
-from model.patches import TrainingPair
-from model.synthetic import write_synthetic_dataset
-from model.train import BatchSource
-from model.train_config import TrainConfig
+from training.cli import build_parser, main, resume_command
+from training.distributed import RankInfo, ShardSource, available_cpus, choose_threads, ddp_config, rank_from_env
+from training.patches import TrainingPair
+from training.synthetic import write_synthetic_dataset
+from training.train import BatchSource
+from training.train_config import TrainConfig
 
 TINY = {"model": {"layers": 2, "growth": 4, "init_features": 8}, "batch": 8, "val_every": 0, "progress": False,
         "threads": 1}
@@ -72,7 +72,7 @@ def _stop(proc: subprocess.Popen) -> None:
 
 def _start(*args: str, env: dict[str, str] | None = None,
            preexec_fn: Callable[[], None] | None = None) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "model.cli", *args], stdout=subprocess.PIPE,
+    return subprocess.Popen([sys.executable, "-m", "training.cli", *args], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, env=env, preexec_fn=preexec_fn)
 
 
@@ -319,7 +319,7 @@ def test_a_rank_frees_its_ddp_model_before_it_leaves_the_process_group(dataset: 
 
     import torch.distributed as dist
 
-    import model.distributed as ddp
+    import training.distributed as ddp
 
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.energy import ENERGY_BYTES_PER_PIXEL, EnergySettings, correct_in_place
+from denoise.energy import ENERGY_BYTES_PER_PIXEL, EnergySettings, correct_in_place
 from tests.test_noise_guard import _traced_peak
 
 BIG = 2**30  # a memory bound that never splits an image of these tests

@@ -10,10 +10,10 @@ import pytest
 from imaging.errors import DenoiserError
 from imaging.exr import write_exr
 from pipeline.cli import denoise_main
-from pipeline.denoise import DEFAULT_MODEL, Denoiser, ensemble_members
-from pipeline.ensemble import (COMBINE_BYTES_PER_PIXEL, combine, combine_in_place, combine_weights, range_suffix,
+from denoise.denoiser import DEFAULT_MODEL, Denoiser, ensemble_members
+from denoise.ensemble import (COMBINE_BYTES_PER_PIXEL, combine, combine_in_place, combine_weights, range_suffix,
                                split_spec, spp_range, weight_bytes_per_pixel, weighted_sum)
-from pipeline.noise_guard import clean_render
+from denoise.noise_guard import clean_render
 from tests.test_denoise import write_tiny_checkpoint
 from tests.test_model_unet import TINY as TINY_UNET
 from tests.test_noise_guard import _traced_peak

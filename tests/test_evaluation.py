@@ -16,10 +16,10 @@ from imaging.errors import DenoiserError
 from imaging.exr import write_exr
 from imaging.metrics import flip, psnr, relmse
 from pipeline.cli import main as render_main
-from pipeline.denoise import Denoiser
+from denoise.denoiser import Denoiser
 from pipeline.evaluation import (BARE, OIDN, RenderSettings, denoise_outputs, evaluate, make_denoiser, render_input,
                                  score)
-from pipeline.oidn import oidn_available
+from denoise.oidn import oidn_available
 from tests.test_denoise import TINY, write_tiny_checkpoint
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -27,20 +27,20 @@ from hypothesis.extra import numpy as hnp
 
 from imaging.exr import read_exr, write_exr
 from imaging.metrics import psnr
-from imaging.render import render
+from rendering.render import render
 from model.architectures import receptive_radius
 from model.architectures import build_model
 from model.checkpoint import read_checkpoint, save_checkpoint
-from model.cli import main as train_main
+from training.cli import main as train_main
 from model.config import ModelConfig
-from model.infer import BOUND_RADIUS, denoise_image, exposure_scale, neighbourhood_max
+from denoise.chain import BOUND_RADIUS, denoise_image, exposure_scale, neighbourhood_max
 from model.network import FlatDenseNet
-from model.step import NonFiniteGuard, train_step
-from model.synthetic import write_synthetic_dataset
+from training.step import NonFiniteGuard, train_step
+from training.synthetic import write_synthetic_dataset
 from model.transfer import HDR_MAX, get_transfer
 from pipeline.cli import denoise_main
-from pipeline.denoise import DEFAULT_MODEL, WEIGHTS_DIR, Denoiser
-from pipeline.ensemble import spp_range
+from denoise.denoiser import DEFAULT_MODEL, WEIGHTS_DIR, Denoiser
+from denoise.ensemble import spp_range
 
 TINY = ModelConfig(layers=3, growth=4, init_features=8)
 RADIUS = receptive_radius(TINY)
@@ -237,7 +237,7 @@ def test_any_size_tiled_equals_untiled(tiled: Denoiser, whole: Denoiser, h: int,
 _MEMORY_CHILD = """
 import json, resource, sys
 import numpy as np
-from pipeline.denoise import Denoiser
+from denoise.denoiser import Denoiser
 den = Denoiser(sys.argv[1], max_memory_mb=float(sys.argv[2]))
 rng = np.random.default_rng(0)
 image = rng.random((int(sys.argv[4]), int(sys.argv[3]), 3), dtype=np.float32)

@@ -1,4 +1,4 @@
-"""The inference-only network (model.inference_net) equals the training module in eval mode.
+"""The inference-only network (denoise.inference_net) equals the training module in eval mode.
 
 Tolerances: transfer-space outputs of the folded network within 2e-5 absolute of the eager
 module (float32 rounding of the folded weights, a different summation order); the radiance y of the
@@ -16,11 +16,11 @@ import torch
 
 from model.checkpoint import save_checkpoint
 from model.config import ModelConfig
-from model.architectures import prepare_for_inference
-from model.inference_net import bn_affine, fold_conv_bn, relu_affine_as_clamp
+from denoise.folded import prepare_for_inference
+from denoise.inference_net import bn_affine, fold_conv_bn, relu_affine_as_clamp
 from model.architectures import build_model
 from imaging.errors import DenoiserError
-from pipeline.denoise import Denoiser
+from denoise.denoiser import Denoiser
 
 NET_ATOL = 2e-5
 CHAIN_RTOL = 2e-4

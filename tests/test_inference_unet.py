@@ -1,4 +1,4 @@
-"""The folded multi-scale network (model.inference_unet) equals the training module in eval mode.
+"""The folded multi-scale network (denoise.inference_unet) equals the training module in eval mode.
 
 Tolerance: transfer-space outputs within 2e-5 absolute (float32 rounding of the folded weights,
 other summation orders), at odd sizes, 1x1, with and without the noise and aux inputs.
@@ -10,9 +10,9 @@ import dataclasses
 import pytest
 import torch
 
-from model.architectures import prepare_for_inference
+from denoise.folded import prepare_for_inference
 from model.config import ModelConfig
-from model.inference_unet import InferenceUNet, _upsample_into, shuffle_order, shuffled_output, unshuffled_input
+from denoise.inference_unet import InferenceUNet, _upsample_into, shuffle_order, shuffled_output, unshuffled_input
 from model.network import network_input
 from model.unet import pad_to_alignment
 from tests.test_model_unet import TINY, trained_like

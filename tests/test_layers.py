@@ -1,10 +1,12 @@
 """The folders are the layers, and imports point down only (README, "Layout").
 
 Every import of every .py file of the packages is read with ``ast`` (function-level and
-``TYPE_CHECKING`` imports included): ``imaging`` uses no other package of ours; ``scenes``,
-``dataset_gen`` and ``model`` use ``imaging`` (``dataset_gen`` also ``scenes``); ``pipeline`` is
-the application and uses all of them; nothing imports ``pipeline`` or ``benchmarks`` but
-themselves (and the tests).
+``TYPE_CHECKING`` imports included) and checked against :data:`ALLOWED`: the foundation
+(``imaging``; ``console`` above it) uses nothing else of ours; ``rendering`` uses ``imaging``;
+``scenes`` and ``dataset_gen`` build on rendering; ``model`` (networks, checkpoints, registry) uses
+``imaging`` only; ``denoise`` (the engine) uses ``model``; ``training`` uses ``denoise`` (validation
+runs the users' chain); ``pipeline`` is the application and uses all of them; nothing imports
+``pipeline`` or ``benchmarks`` but themselves (and the tests).
 """
 from __future__ import annotations
 
@@ -14,14 +16,20 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = ("imaging", "scenes", "dataset_gen", "model", "pipeline", "benchmarks")
+PACKAGES = ("imaging", "console", "rendering", "scenes", "dataset_gen", "model", "denoise", "training",
+            "pipeline", "benchmarks")
+FOUNDATION = {"imaging", "console"}
 ALLOWED = {
     "imaging": {"imaging"},
-    "scenes": {"imaging", "scenes"},
+    "console": {"imaging", "console"},
+    "rendering": {"imaging", "rendering"},
+    "scenes": {"imaging", "rendering", "scenes"},
+    "dataset_gen": FOUNDATION | {"rendering", "scenes", "dataset_gen"},
     "model": {"imaging", "model"},
-    "dataset_gen": {"imaging", "scenes", "dataset_gen"},
-    "pipeline": {"imaging", "scenes", "dataset_gen", "model", "pipeline"},
-    "benchmarks": {"imaging", "scenes", "dataset_gen", "model", "pipeline", "benchmarks"},
+    "denoise": {"imaging", "rendering", "model", "denoise"},
+    "training": FOUNDATION | {"rendering", "model", "denoise", "training"},
+    "pipeline": set(PACKAGES) - {"benchmarks"},
+    "benchmarks": set(PACKAGES),
 }
 
 
@@ -59,7 +67,7 @@ def test_the_rule_sees_every_kind_of_import(tmp_path: Path) -> None:
     (tmp_path / "model" / "sub").mkdir(parents=True)
     (tmp_path / "model" / "sub" / "probe.py").write_text(
         "from imaging.errors import ConfigError\nfrom . import loss\nif False:\n    import scenes\n"
-        "def f():\n    if True:\n        from pipeline.denoise import Denoiser\n"
+        "def f():\n    if True:\n        from pipeline.run import run\n"
         "    import os, benchmarks.evaluate\n")
     assert upward_imports("model", tmp_path) == ["model/sub/probe.py:4 imports scenes",
                                                  "model/sub/probe.py:7 imports pipeline",

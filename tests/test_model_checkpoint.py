@@ -13,7 +13,7 @@ from model.architectures import build_model
 from model.checkpoint import (code_version, compact_optimizer, load_model, read_checkpoint, restore_optimizer,
                               restore_rng, save_checkpoint, strip_optimizer)
 from model.config import ModelConfig
-from model.loss import denoising_loss
+from training.loss import denoising_loss
 
 CONFIG = ModelConfig(layers=3, growth=4, init_features=8, transfer="pu", output="direct")
 

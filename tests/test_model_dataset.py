@@ -10,8 +10,8 @@ import torch
 
 from imaging.errors import DatasetError
 from imaging.exr import read_exr
-from model.dataset import CONVERGED_SPP, load_training_pairs, load_val_images, read_dataset_config, read_manifest
-from model.synthetic import write_synthetic_dataset
+from training.dataset import CONVERGED_SPP, load_training_pairs, load_val_images, read_dataset_config, read_manifest
+from training.synthetic import write_synthetic_dataset
 from model.transfer import get_transfer
 
 

@@ -11,10 +11,10 @@ from imaging.errors import ConfigError
 from imaging.hashing import file_sha256
 from model.architectures import build_model
 from model.checkpoint import load_model, save_checkpoint
-from model.cli import main
+from training.cli import main
 from model.config import ModelConfig
 from model.grow import grow_model
-from model.synthetic import write_synthetic_dataset
+from training.synthetic import write_synthetic_dataset
 
 SMALL = ModelConfig(layers=2, growth=4, init_features=8, transfer="pu")
 

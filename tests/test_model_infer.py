@@ -12,8 +12,8 @@ import torch
 
 from model.checkpoint import save_checkpoint
 from model.config import PRESETS, ModelConfig
-from model.flips import FLIPS, check_flips
-from model.infer import (BOUND_RADIUS, denoise_image, flip_average, log_average_luminance, neighbourhood_max,
+from denoise.flips import FLIPS, check_flips
+from denoise.chain import (BOUND_RADIUS, denoise_image, flip_average, log_average_luminance, neighbourhood_max,
                          noisy_region)
 from model.architectures import alignment, build_model
 from model.transfer import HDR_MAX, get_transfer
@@ -189,8 +189,8 @@ def test_whole_image_passes_do_not_depend_on_their_budget() -> None:
 _TILE_CHILD = """
 import gc, json, sys
 import numpy as np
-from model.infer import denoise_image
-from pipeline.denoise import Denoiser
+from denoise.chain import denoise_image
+from denoise.denoiser import Denoiser
 
 def status(key):
     for line in open("/proc/self/status"):

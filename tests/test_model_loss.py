@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from model.loss import (SSIM_C1, SSIM_C2, SSIM_SIGMA, SSIM_WINDOW, denoising_loss, gradient_l1, ms_ssim,
+from training.loss import (SSIM_C1, SSIM_C2, SSIM_SIGMA, SSIM_WINDOW, denoising_loss, gradient_l1, ms_ssim,
                         ms_ssim_scales)
 
 

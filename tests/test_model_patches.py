@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from imaging.errors import ConfigError, DatasetError
-from model.patches import (PatchConfig, TrainingPair, augment, detail_choice, detail_probabilities, sample_batch,
+from training.patches import (PatchConfig, TrainingPair, augment, detail_choice, detail_probabilities, sample_batch,
                            unique_counts)
 
 

@@ -7,8 +7,8 @@ import torch
 from imaging.errors import TrainingError
 from model.architectures import build_model
 from model.config import ModelConfig
-from model.loss import denoising_loss
-from model.step import NonFiniteGuard, learning_rate, train_step
+from training.loss import denoising_loss
+from training.step import NonFiniteGuard, learning_rate, train_step
 
 TINY = ModelConfig(layers=2, growth=4, init_features=8)
 

@@ -10,7 +10,7 @@ import torch
 from imaging.errors import ConfigError
 from model.architectures import alignment, build_model, receptive_radius
 from model.config import PRESETS, ModelConfig
-from model.infer import denoise_image
+from denoise.chain import denoise_image
 from model.unet import MultiScaleDenoiser, add_kernel_, apply_kernel, conv_macs_per_pixel, kernel_offsets, pad_to_alignment
 
 TINY = ModelConfig(arch="dense_unet", layers=1, growth=4, init_features=8, levels=2, transfer="pu")

@@ -6,8 +6,8 @@ import tracemalloc
 import numpy as np
 import pytest
 
-from imaging.render import render
-from pipeline.noise_guard import (BLEND_BYTES_PER_PIXEL, GUARD_BYTES_PER_PIXEL, blend, blend_weight,
+from rendering.render import render
+from denoise.noise_guard import (BLEND_BYTES_PER_PIXEL, GUARD_BYTES_PER_PIXEL, blend, blend_weight,
                                   clean_render, guard, guard_in_place)
 
 

@@ -11,7 +11,7 @@ import pytest
 
 from imaging.exr import read_exr, write_exr
 from pipeline.cli import denoise_main, main
-from pipeline.denoise import Denoiser
+from denoise.denoiser import Denoiser
 from tests.test_denoise import write_tiny_checkpoint
 
 DEMO = Path(__file__).resolve().parents[1] / "scenes" / "examples" / "demo.xml"
@@ -162,7 +162,7 @@ def test_denoise_bad_input(tmp_path: Path, ckpt: Path, demo_run: Path, capsys: p
 
 
 def test_shipped_model_beats_noisy_input_on_demo_scene(tmp_path: Path) -> None:
-    """The default model (pipeline.denoise.DEFAULT_MODEL) on our own 32-px demo scene at 16 spp."""
+    """The default model (denoise.denoiser.DEFAULT_MODEL) on our own 32-px demo scene at 16 spp."""
     out = tmp_path / "shipped"
     assert main([str(DEMO), "--spp", "16", "--res", "32", "32", "--reference-spp", "512",
                  "--out", str(out), "--quiet"]) == 0

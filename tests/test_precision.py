@@ -1,4 +1,4 @@
-"""model.precision: the CPU's bfloat16 support read from /proc/cpuinfo, and the folded networks in
+"""denoise.precision: the CPU's bfloat16 support read from /proc/cpuinfo, and the folded networks in
 bfloat16 against float32.
 
 Tolerances: bfloat16 keeps 8 mantissa bits (relative rounding 2^-9 = 0.2 %); through a tiny
@@ -16,13 +16,13 @@ import pytest
 import torch
 
 from imaging.errors import DenoiserError
-from model.architectures import prepare_for_inference
+from denoise.folded import prepare_for_inference
 from model.checkpoint import save_checkpoint
 from model.config import ModelConfig
 from model.transfer import get_transfer
-from model.precision import FLAT_BF16_MAX_SPP, PRECISIONS, compute_dtype, cpu_flags, native_bfloat16
+from denoise.precision import FLAT_BF16_MAX_SPP, PRECISIONS, compute_dtype, cpu_flags, native_bfloat16
 from pipeline.cli import denoise_main
-from pipeline.denoise import Denoiser
+from denoise.denoiser import Denoiser
 from tests.test_infer_speedups import _trained_like
 from tests.test_model_unet import TINY, trained_like
 

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import pytest
 
-from imaging.progress import tqdm_bars
+from console.progress import tqdm_bars
 
 
 def test_tqdm_bars_count_from_the_initial_step(capsys: pytest.CaptureFixture) -> None:

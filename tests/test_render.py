@@ -9,11 +9,11 @@ from typing import Any
 import numpy as np
 import pytest
 
-from imaging import render_crops
+from rendering import render_crops
 from imaging.errors import RenderError
-from imaging.render import (half_variance, load_scene, pass_seeds, prepare, render, render_loaded,
+from rendering.render import (half_variance, load_scene, pass_seeds, prepare, render, render_loaded,
                             zero_nonfinite)
-from imaging.render_crops import crop_layout, crop_seed, film_window, max_crop_pixels
+from rendering.render_crops import crop_layout, crop_seed, film_window, max_crop_pixels
 from tests.conftest import lit_plane_scene
 
 DEMO = Path(__file__).resolve().parents[1] / "scenes" / "examples" / "demo.xml"

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from imaging.errors import SceneError
-from imaging.render import load_scene, prepare, render
+from rendering.render import load_scene, prepare, render
 
 FILM = """<scene version="3.0.0">
   <default name="res" value="24"/>

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from imaging.render import load_scene, prepare, render
+from rendering.render import load_scene, prepare, render
 from scenes.demo import DEMO_NAME, EXAMPLES_DIR, demo_scene
 from scenes.families import media
 from scenes.registry import DEFAULT_FAMILIES, FAMILIES, generate

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from imaging.tiling import core_for_budget, cores_for_budget, plan_tiles, run_tiled, run_windows
+from denoise.tiling import core_for_budget, cores_for_budget, plan_tiles, run_tiled, run_windows
 
 
 @pytest.mark.parametrize("h,w,core,margin", [(1, 1, 8, 3), (1, 37, 8, 3), (37, 1, 8, 3),

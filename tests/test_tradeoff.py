@@ -9,10 +9,10 @@ from pathlib import Path
 import pytest
 
 from imaging.errors import DenoiserError
-from pipeline import denoise
+from denoise import denoiser
 from pipeline.cli import tradeoff_main
 from pipeline.evaluation import RenderSettings
-from pipeline.oidn import oidn_available
+from denoise.oidn import oidn_available
 from pipeline.tradeoff import Point, TradeoffConfig, analyse, model_labels
 from tests.test_denoise import write_tiny_checkpoint
 
@@ -75,7 +75,7 @@ def test_analyse_synthetic_points() -> None:
 
 def test_missing_preset_weights_name_the_file(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
                                                capsys: pytest.CaptureFixture) -> None:
-    monkeypatch.setattr(denoise, "WEIGHTS_DIR", tmp_path)
+    monkeypatch.setattr(denoiser, "WEIGHTS_DIR", tmp_path)
     with pytest.raises(DenoiserError, match=r"fast.ckpt: no weights for model preset 'fast'"):
         model_labels(["fast"])
     code = tradeoff_main([str(DEMO), "--models", "balanced", "--reference-spp", "4", "--out",
@@ -85,11 +85,11 @@ def test_missing_preset_weights_name_the_file(tmp_path: Path, monkeypatch: pytes
 
 
 def test_ensemble_labels_join_their_members(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(denoise, "WEIGHTS_DIR", tmp_path)
+    monkeypatch.setattr(denoiser, "WEIGHTS_DIR", tmp_path)
     fast, mine = write_tiny_checkpoint(tmp_path / "fast.ckpt"), write_tiny_checkpoint(tmp_path / "mine.ckpt")
     labels = model_labels(["fast", f"fast+{mine}"])
     assert labels == {"fast": fast, "fast+mine": [fast, mine]}
-    assert len(denoise.Denoiser(labels["fast+mine"]).members) == 2
+    assert len(denoiser.Denoiser(labels["fast+mine"]).members) == 2
     with pytest.raises(DenoiserError, match="nope.ckpt: checkpoint not found"):
         model_labels([f"fast+{tmp_path / 'nope.ckpt'}"])
 

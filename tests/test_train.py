@@ -8,10 +8,10 @@ from pathlib import Path
 import pytest
 import torch
 
-import model.step
+import training.step
 from model.checkpoint import load_model, read_checkpoint
-from model.cli import main
-from model.synthetic import write_synthetic_dataset
+from training.cli import main
+from training.synthetic import write_synthetic_dataset
 
 TINY_MODEL = {"layers": 2, "growth": 4, "init_features": 8}
 
@@ -152,8 +152,8 @@ def test_nan_losses_stop_training_without_poisoning(dataset: Path, tmp_path: Pat
     run = tmp_path / "run"
     assert main(["--data", str(dataset), "--out", str(run), "--config", cfg, "--steps", "2"]) == 0
     before = read_checkpoint(run / "last.ckpt").prefixed("model/")
-    real = model.step.denoising_loss
-    monkeypatch.setattr(model.step, "denoising_loss", lambda out, ref, *a: real(out, ref, *a) * float("nan"))
+    real = training.step.denoising_loss
+    monkeypatch.setattr(training.step, "denoising_loss", lambda out, ref, *a: real(out, ref, *a) * float("nan"))
     rc = main(["--out", str(run), "--resume", "--steps", "20", "--max-bad-steps", "3", "--no-progress"])
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 1 and len(err) == 1
@@ -245,7 +245,7 @@ def test_aux_model_refuses_dataset_without_aux(dataset: Path, tmp_path: Path,
 
 
 def test_config_precedence_defaults_file_flags(tmp_path: Path) -> None:
-    from model.cli import build_parser, config_from_args
+    from training.cli import build_parser, config_from_args
     cfg = _config(tmp_path, model={"preset": "fast", "transfer": "pu"}, batch=16, lr=0.002)
     args = build_parser().parse_args(["--data", "d", "--out", "o", "--config", cfg, "--lr", "0.005",
                                       "--output", "direct", "--patch", "24"])
@@ -320,8 +320,8 @@ def test_extra_data_trains_and_validates_on_both_datasets(noisy_dataset: Path, t
     assert meta["data_config"]["extra_data"][0]["path"] == str(other)
     assert meta["data_config"]["extra_data"][0]["scenes"] == {"train": 1, "val": 1}
     assert main(["--out", str(run), "--resume", "--steps", "3", "--no-progress"]) == 0
-    from model.train import DATASET_ID_STRIDE, _Run
-    from model.train_config import TrainConfig
+    from training.train import DATASET_ID_STRIDE, _Run
+    from training.train_config import TrainConfig
     pairs = _Run(TrainConfig.from_dict({**meta["train_config"], "out": str(tmp_path / "r3")}), False).pairs
     assert {p.scene for p in pairs} == {0, 1, DATASET_ID_STRIDE + 1}
 
@@ -348,9 +348,9 @@ def test_spp_limits_train_and_validate_on_the_renders_within(noisy_dataset: Path
     assert vals[-1]["images"] == 1 and set(vals[-1]["per_spp"]) == {str(kept_spp)}
     meta = read_checkpoint(run / "last.ckpt").header
     assert {k: meta["train_config"][k] for k in recorded} == recorded
-    from model.dataset import CONVERGED_SPP
-    from model.train import _Run
-    from model.train_config import TrainConfig
+    from training.dataset import CONVERGED_SPP
+    from training.train import _Run
+    from training.train_config import TrainConfig
     pairs = _Run(TrainConfig.from_dict({**meta["train_config"], "out": str(tmp_path / "r2")}), False).pairs
     assert sorted((p.scene, p.spp) for p in pairs) == [(0, CONVERGED_SPP), (0, kept_spp), (1, CONVERGED_SPP),
                                                         (1, kept_spp)]

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from benchmarks.trend import fit, main, trend
-from model.run_log import RunLog, validation_curve
+from training.run_log import RunLog, validation_curve
 
 
 def _log(path: Path, minutes: list[float], psnr: list[float], oidn: float = 40.0) -> Path:

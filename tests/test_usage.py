@@ -9,8 +9,8 @@ import pytest
 
 from dataset_gen.cli import main as generate_main
 from imaging.errors import DenoiserError
-from imaging.usage import OneLineParser, int_list, name_list, name_value, positive_float, positive_int, size_list
-from model.cli import main as train_main
+from console.usage import OneLineParser, int_list, name_list, name_value, positive_float, positive_int, size_list
+from training.cli import main as train_main
 from pipeline.cli import denoise_main, main as render_main, tradeoff_main
 
 COMMANDS: dict[str, Callable[[list[str]], int]] = {

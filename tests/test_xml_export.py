@@ -6,9 +6,9 @@ import xml.etree.ElementTree as ET
 import numpy as np
 import pytest
 
-from imaging.backend import select_variant
+from rendering.backend import select_variant
 from imaging.exr import read_exr
-from imaging.render import render
+from rendering.render import render
 from scenes.spec import GeneratedScene
 from scenes.transforms import compose, rotate, scale, to_mitsuba, translate
 from scenes.xml_export import format_float, plugin_tag, scene_to_xml, write_scene

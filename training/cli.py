@@ -2,7 +2,7 @@
 
     train --data DIR --out RUN_DIR [--config FILE.json] [--preset fast|balanced|high|paper] [--steps N] ...
     train --out RUN_DIR --resume [--steps N]
-    train --nproc N ...     (DDP on N local processes via torchrun; or: torchrun ... -m model.cli ...)
+    train --nproc N ...     (DDP on N local processes via torchrun; or: torchrun ... -m training.cli ...)
 
 Precedence for a new run: defaults < ``--config`` JSON (any TrainConfig fields; ``"model"`` may be
 a full ModelConfig object or ``{"preset": "fast", ...overrides}``) < flags. On ``--resume`` the
@@ -20,12 +20,12 @@ from pathlib import Path
 from typing import Any
 
 from imaging.errors import ConfigError, DenoiserError
-from imaging.progress import tqdm_bars
-from imaging.usage import OneLineParser
+from console.progress import tqdm_bars
+from console.usage import OneLineParser
 from model.config import ARCHS, PRESETS, ModelConfig, preset
-from model.distributed import RankInfo, ddp_config, launch, rank_from_env, train_distributed
-from model.train import resume_config, train
-from model.train_config import LOSS_NORMS, LOSS_SPACES, RESUMABLE_OVERRIDES, TrainConfig
+from training.distributed import RankInfo, ddp_config, launch, rank_from_env, train_distributed
+from training.train import resume_config, train
+from training.train_config import LOSS_NORMS, LOSS_SPACES, RESUMABLE_OVERRIDES, TrainConfig
 
 _FLAGS = {  # argparse dest -> TrainConfig field
     "data": "data", "steps": "steps", "batch": "batch", "lr": "lr", "grad_clip": "grad_clip", "seed": "seed",
@@ -207,7 +207,7 @@ def _resume_hint(parser: argparse.ArgumentParser, args: argparse.Namespace, rank
     """:func:`resume_command` as seen by this process: the launcher, or a rank under torchrun."""
     if rank is None or rank.world == rank.local_world:  # one machine: train --nproc N does it
         return resume_command(parser, args, rank.world if rank is not None else None)
-    return resume_command(parser, args, launcher="torchrun <the same torchrun options> -m model.cli")
+    return resume_command(parser, args, launcher="torchrun <the same torchrun options> -m training.cli")
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -24,20 +24,20 @@ import torch
 from imaging.atomic_io import TMP_PREFIX, write_text_atomic
 from imaging.errors import ConfigError, DatasetError, DenoiserError, TrainingError
 from imaging.hashing import file_sha256
-from imaging.progress import ProgressBar, ProgressFactory
+from console.progress import ProgressBar, ProgressFactory
 from model.architectures import build_model
 from model.checkpoint import (Checkpoint, model_from_checkpoint, read_checkpoint, restore_optimizer,
                               restore_rng, save_checkpoint)
-from model.dataset import (SceneRecord, ValImage, load_training_pairs, load_val_images, read_dataset_config,
+from training.dataset import (SceneRecord, ValImage, load_training_pairs, load_val_images, read_dataset_config,
                            read_manifest)
 from model.grow import grow_model
 from model.noise_input import drop_noise
-from model.patches import TrainingPair, sample_batch
-from model.run_log import RunLog, plot_curves
-from model.step import NonFiniteGuard, train_step
-from model.train_config import RESUMABLE_OVERRIDES, TrainConfig
+from training.patches import TrainingPair, sample_batch
+from training.run_log import RunLog, plot_curves
+from training.step import NonFiniteGuard, train_step
+from training.train_config import RESUMABLE_OVERRIDES, TrainConfig
 from model.transfer import get_transfer
-from model.validate import Validator
+from training.validate import Validator
 
 DATASET_ID_STRIDE = 1_000_000  # scene ids of the k-th dataset of a run are its indices + k * this
 
@@ -174,7 +174,7 @@ def _remove_temporaries(folder: Path) -> None:
 class _Run:
     """State of one training run; :func:`train` drives it."""
 
-    primary = True  # writes the run's files (under DDP only rank 0 does: model.distributed)
+    primary = True  # writes the run's files (under DDP only rank 0 does: training.distributed)
     reduce_loss: Callable[[float], float] | None = None  # chunk loss -> the value all DDP ranks agree on
 
     def __init__(self, config: TrainConfig, resume: bool) -> None:

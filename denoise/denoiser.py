@@ -1,7 +1,7 @@
 """The inference object: a checkpoint loaded once, applied to images of any kind and size.
 
 The chain itself (sanitise, transfer, exact tiling under a memory bound, inverse) is
-:func:`model.infer.denoise_image`; this object counts the invalid input values it replaced, picks
+:func:`denoise.chain.denoise_image`; this object counts the invalid input values it replaced, picks
 the tile size from the memory budget and converts between array kinds. Mirrors ``mi.OptixDenoiser``'s call shape (``denoiser(noisy, albedo=...,
 normals=...)`` returns the same kind of object it was given) but runs on the CPU with our model.
 """
@@ -16,23 +16,23 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from imaging.allocator import fix_mmap_threshold, use_huge_pages
+from denoise.allocator import fix_mmap_threshold, use_huge_pages
 from imaging.blocks import block_rows, parallel_map, pass_workers
 from imaging.errors import DenoiserError
 from imaging.hashing import file_sha256
-from imaging.tiling import core_for_budget, cores_for_budget
-from pipeline.energy import EnergySettings, correct_in_place
-from pipeline.ensemble import SEPARATOR, combine_in_place, range_suffix, split_spec, spp_range
-from pipeline.noise_guard import DEFAULT_STRENGTH, guard_in_place, strength_for
+from denoise.tiling import core_for_budget, cores_for_budget
+from denoise.energy import EnergySettings, correct_in_place
+from denoise.ensemble import SEPARATOR, combine_in_place, range_suffix, split_spec, spp_range
+from denoise.noise_guard import DEFAULT_STRENGTH, guard_in_place, strength_for
 
 if TYPE_CHECKING:
-    from imaging.render import RenderResult
+    from rendering.render import RenderResult
 
 WEIGHTS_DIR = Path(__file__).resolve().parents[1] / "model" / "weights"
 # The model when none is named: an ensemble of shipped checkpoints, two networks at any known spp
 # (fast-lowspp + u-balanced-k5-lowspp up to 8 spp, fast + u-balanced-k5-lowspp at 9-16, fast + u-high
 # above); fast, the first, alone where the spp is unknown (docs/scoreboard.md, "The default"). `fast` is
-# two members: limited to 9-16 spp it computes in bfloat16 under `auto` (model/precision.py), above in
+# two members: limited to 9-16 spp it computes in bfloat16 under `auto` (denoise/precision.py), above in
 # float32. u-balanced-k5-lowspp (a U-Net with a predicted filter, docs/multiscale.md) took u-high-lowspp's
 # place on 2026-12-05: level with it in the pair at 1-16 spp with 75.6k MACs/px against 108.9k (the time
 # saved within the inference benchmark's noise, docs/speed.md).
@@ -60,7 +60,7 @@ def resolve_model(name: str | Path) -> Path:
 
 def resolve_members(spec: str | Path | Sequence[str | Path] | None) -> list[tuple[Path, int, int]]:
     """Every member of a ``--model`` value (:func:`ensemble_members`) as (checkpoint file, LO, HI):
-    the spp range it is limited to (``MODEL:LO-HI``, :func:`pipeline.ensemble.spp_range`; 0: no
+    the spp range it is limited to (``MODEL:LO-HI``, :func:`denoise.ensemble.spp_range`; 0: no
     limit). Raises :class:`DenoiserError` for a bad range, or naming a missing file of the default."""
     members = []
     for member in ensemble_members(spec):
@@ -90,7 +90,7 @@ def shipped_members(spec: str, weights: Path = WEIGHTS_DIR) -> list[str]:
 
 def ensemble_members(spec: str | Path | Sequence[str | Path] | None) -> list[str | Path]:
     """The models of a ``--model`` value: None -> :data:`DEFAULT_MODEL`'s; ``A+B[+...]``
-    (:mod:`pipeline.ensemble`) names several, unless it is an existing file's path; a list or tuple
+    (:mod:`denoise.ensemble`) names several, unless it is an existing file's path; a list or tuple
     names its items; anything else is one. Raises :class:`DenoiserError` for an empty member."""
     if spec is None:
         return list(DEFAULT_MODEL)
@@ -127,9 +127,11 @@ class Network:
     def load(cls, path: Path, optimize: bool, precision: str, limit: tuple[int, int] = (0, 0)) -> Network:
         import torch
 
-        from model.architectures import prepare_for_inference, receptive_radius
+        from model.architectures import receptive_radius
+
+        from denoise.folded import prepare_for_inference
         from model.checkpoint import load_model
-        from model.precision import compute_dtype
+        from denoise.precision import compute_dtype
 
         model, config, meta = load_model(path)
         model.eval()
@@ -219,7 +221,7 @@ class Denoiser:
 
     ``checkpoint``: a file written by ``train`` or a preset name (:func:`resolve_model`; default:
     :data:`DEFAULT_MODEL`); ``A+B[+...]`` or a list of them an ensemble: every model denoises
-    the image and :mod:`pipeline.ensemble` combines their outputs (weighted by their estimated
+    the image and :mod:`denoise.ensemble` combines their outputs (weighted by their estimated
     error where a variance is given, else their mean) before the guard. ``path``, ``model``,
     ``config``, ``meta``, ``net`` and ``dtype`` are the first model's; ``members`` holds them all.
     ``max_memory_mb`` bounds the scratch memory of :meth:`denoise_array` as OIDN's
@@ -227,22 +229,22 @@ class Denoiser:
     the guard's weight map and, asked for, the network's output; an ensemble also holds each
     further model's output and a weight per model and pixel). Every step works within it:
     counting invalid values and the exposure in row blocks, the network on tiles planned with
-    :func:`model.infer.tile_bytes_per_pixel`, the noise guard on tiles and row blocks
-    (:func:`pipeline.noise_guard.guard_in_place`). Creating a Denoiser fixes glibc's mmap
-    threshold for the process (:mod:`imaging.allocator`): without it freed tile temporaries stay
+    :func:`denoise.chain.tile_bytes_per_pixel`, the noise guard on tiles and row blocks
+    (:func:`denoise.noise_guard.guard_in_place`). Creating a Denoiser fixes glibc's mmap
+    threshold for the process (:mod:`denoise.allocator`): without it freed tile temporaries stay
     resident and the process peaks at about twice that; it also asks torch for transparent huge
-    pages (:func:`imaging.allocator.use_huge_pages`: a fresh mapping faults per 2 MiB, not per 4 KiB;
+    pages (:func:`denoise.allocator.use_huge_pages`: a fresh mapping faults per 2 MiB, not per 4 KiB;
     it takes effect when no large torch tensor was made before). ``threads`` sets torch's CPU threads.
     ``optimize``: run the folded, concatenation-free copy of the model
-    (:mod:`model.inference_net`, :mod:`model.inference_unet`; equal up to float32 rounding)
+    (:mod:`denoise.inference_net`, :mod:`denoise.inference_unet`; equal up to float32 rounding)
     instead of the training module. ``skip_below``: with a variance, leave the parts of the image
-    whose transfer-space noise is below this out of the network (:func:`model.infer.denoise_image`).
-    ``precision``: the float format of the folded network (:mod:`model.precision`: ``auto`` is
+    whose transfer-space noise is below this out of the network (:func:`denoise.chain.denoise_image`).
+    ``precision``: the float format of the folded network (:mod:`denoise.precision`: ``auto`` is
     bfloat16 for a multi-scale network on a CPU with native bfloat16, else float32; the training
     module is always float32). ``flips``: average the network over 1, 2 or 4 mirrored copies of
-    each tile (:func:`model.infer.flip_average`): 2x or 4x the network's time for ~0.1 or ~0.2 dB
+    each tile (:func:`denoise.chain.flip_average`): 2x or 4x the network's time for ~0.1 or ~0.2 dB
     (docs/speed.md). ``energy``: match the output's local means to the render's where they differ by
-    more than its noise, after the guard (:mod:`pipeline.energy`; None: off).
+    more than its noise, after the guard (:mod:`denoise.energy`; None: off).
     """
 
     def __init__(self, checkpoint: str | Path | Sequence[str | Path] | None = None,
@@ -251,8 +253,8 @@ class Denoiser:
                  flips: int = 1, energy: EnergySettings | None = EnergySettings()) -> None:
         import torch
 
-        from model.flips import check_flips
-        from model.precision import check_precision
+        from denoise.flips import check_flips
+        from denoise.precision import check_precision
 
         try:
             check_precision(precision)  # before the checkpoint is read
@@ -334,8 +336,8 @@ class Denoiser:
 
     def bytes_per_pixel(self, member: Network | None = None) -> float:
         """Peak scratch bytes per window pixel of one tile of ``member`` (default: the first model;
-        :func:`model.infer.tile_bytes_per_pixel`)."""
-        from model.infer import tile_bytes_per_pixel
+        :func:`denoise.chain.tile_bytes_per_pixel`)."""
+        from denoise.chain import tile_bytes_per_pixel
 
         m = member or self.members[0]
         return tile_bytes_per_pixel(m.config, self.optimize, m.dtype.itemsize, self.flips)
@@ -343,18 +345,18 @@ class Denoiser:
     def core_size(self, member: Network | None = None) -> int:
         """Tile core side that keeps one tile within ``max_memory_mb``: its window's pixels at
         :meth:`bytes_per_pixel`, plus the fixed cost of a forward pass."""
-        from model.infer import TILE_FIXED_BYTES
+        from denoise.chain import TILE_FIXED_BYTES
 
         m = member or self.members[0]
         return core_for_budget(self.bytes_per_pixel(m), self.max_bytes - TILE_FIXED_BYTES, m.margin)
 
     def cores(self, height: int, width: int, member: Network | None = None) -> tuple[int, int]:
         """The (rows, columns) tile core for an HxW image: every window within ``max_memory_mb``
-        as :meth:`core_size`'s, and the fewest window pixels in all (:func:`imaging.tiling.cores_for_budget`:
+        as :meth:`core_size`'s, and the fewest window pixels in all (:func:`denoise.tiling.cores_for_budget`:
         with a multi-scale network's ~250-px margins, a 1080p image in two full-height strips
         processes 1.3x its pixels where square tiles under the same bound process 2.3x)."""
         from model.architectures import alignment
-        from model.infer import TILE_FIXED_BYTES
+        from denoise.chain import TILE_FIXED_BYTES
 
         m = member or self.members[0]
         return cores_for_budget(height, width, self.bytes_per_pixel(m), self.max_bytes - TILE_FIXED_BYTES,
@@ -364,20 +366,20 @@ class Denoiser:
                       normals: np.ndarray | None = None, variance: np.ndarray | None = None,
                       strength: float = DEFAULT_STRENGTH, keep_network: bool = False,
                       spp: int | None = None) -> DenoiseResult:
-        """Denoise HxWx3 linear radiance (any float dtype) with :func:`model.infer.denoise_image`.
+        """Denoise HxWx3 linear radiance (any float dtype) with :func:`denoise.chain.denoise_image`.
 
         ``variance``: HxWx3 variance of ``rgb``'s Monte Carlo estimate (a render made of two
-        halves, :func:`imaging.render.render_loaded`); given, the output is blended with the
-        render where the render's noise does not explain the change (:mod:`pipeline.noise_guard`).
+        halves, :func:`rendering.render.render_loaded`); given, the output is blended with the
+        render where the render's noise does not explain the change (:mod:`denoise.noise_guard`).
         ``keep_network``: also return the network's output before that blend (``network``).
         ``spp``: the render's samples per pixel, where known: an ensemble runs only the members
         trained on such renders (:meth:`active`; unknown: the members trained on every spp). The
-        output's local means are then matched to the render's (``energy``, :mod:`pipeline.energy`).
+        output's local means are then matched to the render's (``energy``, :mod:`denoise.energy`).
         None of the inputs is changed or copied whole.
         """
         import torch
 
-        from model.infer import denoise_image, image_exposure
+        from denoise.chain import denoise_image, image_exposure
 
         rgb = np.asarray(rgb)
         if rgb.ndim != 3 or rgb.shape[2] != 3 or min(rgb.shape[:2]) < 1:
@@ -426,7 +428,7 @@ class Denoiser:
                              tuple(m.path.stem for m in members))
 
     def denoise_render(self, render: RenderResult, keep_network: bool = False) -> DenoiseResult:
-        """Denoise a render of :mod:`imaging.render` with what it carries: its AOVs and, for a
+        """Denoise a render of :mod:`rendering.render` with what it carries: its AOVs and, for a
         render made in two halves, its variance (the model's noise input, if it has one) and the
         noise guard at the strength for its spp. ``keep_network`` as in :meth:`denoise_array`."""
         return self.denoise_array(render.rgb, render.aovs.get("albedo"), render.aovs.get("sh_normal"),

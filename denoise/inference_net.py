@@ -19,10 +19,10 @@ What changes against the training module (eval mode), and why it is exact up to 
 * **channels_last** (NHWC) activations and weights, the layout oneDNN convolves without reordering.
 * **One scratch for the clamps.** Every clamp (and the tail's affine map) writes into a view of one
   flat buffer allocated once per forward pass (:func:`scratch_view`) instead of a fresh tensor per
-  layer: a fresh tensor of more than a megabyte is a fresh mapping (:mod:`imaging.allocator`), whose
+  layer: a fresh tensor of more than a megabyte is a fresh mapping (:mod:`denoise.allocator`), whose
   every page faults on first touch. With the one-sided clamp of :class:`_ClampConv1x1`, measured
   on 2 cores: u-fast's network alone at 1080p in bfloat16, 1.22 -> 0.90 s (docs/speed.md).
-* **Optionally bfloat16** (``dtype``, :mod:`model.precision`): weights and activations; the input
+* **Optionally bfloat16** (``dtype``, :mod:`denoise.precision`): weights and activations; the input
   is built and the residual added in float32.
 * **The input written into one NHWC buffer** (:func:`padded_input`): RGB, its gradients and the
   other channels side by side per pixel, the layout the first conv reads, instead of a

@@ -28,8 +28,8 @@ from __future__ import annotations
 import numpy as np
 
 from imaging.blocks import parallel_map, row_blocks
-from imaging.box_filter import box_mean_2d
-from imaging.tiling import Tile, core_for_budget, run_windows
+from denoise.box_filter import box_mean_2d
+from denoise.tiling import Tile, core_for_budget, run_windows
 
 DEFAULT_RADIUS = 2      # window 5x5 (benchmarks/noise_guard.py)
 DEFAULT_STRENGTH = 1.0  # 1: the Wiener weight; larger trusts the denoiser more

@@ -1,6 +1,6 @@
 """Data-parallel training on several CPU processes with PyTorch DDP (gloo), launched by torchrun.
 
-    torchrun --standalone --nproc-per-node 2 -m model.cli --data DIR --out RUN [...]
+    torchrun --standalone --nproc-per-node 2 -m training.cli --data DIR --out RUN [...]
     train --nproc 2 --data DIR --out RUN [...]      (the same, through torchrun's own launcher)
 
 What a run with N ranks computes — exactly what one process computes with ``micro_batch = B/N``:
@@ -23,7 +23,7 @@ checkpoints (atomically, as in one process) and ``curves.png``. Every rank holds
 set in RAM and samples the whole global batch (cheap next to the network; on the prefetch thread).
 If a rank dies, torchrun stops the others; the last complete ``last.ckpt`` stays, and the error
 ends with the command that resumes it (``train --out RUN --resume --nproc N ...``: the original
-command less what the checkpoint holds, see :func:`model.cli.resume_command`); it may also be
+command less what the checkpoint holds, see :func:`training.cli.resume_command`); it may also be
 resumed with any other number of ranks, see above.
 
 **Threads per rank** (:func:`choose_threads`): ``--threads`` if given; else ``OMP_NUM_THREADS``
@@ -54,12 +54,12 @@ import torch.distributed as dist
 from torch import nn
 
 from imaging.errors import CheckpointError, ConfigError, TrainingError
-from imaging.progress import ProgressFactory
+from console.progress import ProgressFactory
 from model.checkpoint import Checkpoint, read_checkpoint
-from model.patches import TrainingPair
-from model.run_log import RunLog
-from model.train import BatchSource, TrainResult, _Run, run_training
-from model.train_config import TrainConfig
+from training.patches import TrainingPair
+from training.run_log import RunLog
+from training.train import BatchSource, TrainResult, _Run, run_training
+from training.train_config import TrainConfig
 
 BACKEND = "gloo"
 TIMEOUT = datetime.timedelta(minutes=60)  # a collective waits this long (rank 0 validating...)
@@ -293,7 +293,7 @@ def train_distributed(config: TrainConfig, rank: RankInfo, resume: bool = False,
     """Train ``config`` as rank ``rank.rank`` of ``rank.world`` (under torchrun); see the module doc.
 
     ``config`` is the single-process config (``ddp_config`` is applied here); ``progress`` is used
-    on rank 0 only. Raises what :func:`model.train.train` raises, and :class:`TrainingError` when
+    on rank 0 only. Raises what :func:`training.train.train` raises, and :class:`TrainingError` when
     another rank is lost (the error names the last complete checkpoint and ``resume_hint``, the
     command that resumes the run).
     """
@@ -367,7 +367,7 @@ def _environment(name: str, value: str) -> Iterator[None]:
 
 def launch(nproc: int, argv: Sequence[str], out: Path, threads: int | None = None,
            resume_hint: str | None = None, log: Callable[[str], None] = lambda s: None) -> None:
-    """Run ``python -m model.cli ARGV`` on ``nproc`` local ranks through torchrun's launcher.
+    """Run ``python -m training.cli ARGV`` on ``nproc`` local ranks through torchrun's launcher.
 
     ``threads`` is ``--threads``; the ranks' thread count (:func:`choose_threads`) is reported
     through ``log`` and passed to them as ``OMP_NUM_THREADS`` (an explicit one is kept). Raises
@@ -380,7 +380,7 @@ def launch(nproc: int, argv: Sequence[str], out: Path, threads: int | None = Non
     choice = choose_threads(threads, nproc)
     log(f"{nproc} ranks, {choice}")
     logging.getLogger("torch.distributed.elastic").setLevel(logging.CRITICAL)  # we report failures
-    args = parse_args(["--standalone", f"--nproc-per-node={nproc}", "--max-restarts=0", "-m", "model.cli"])
+    args = parse_args(["--standalone", f"--nproc-per-node={nproc}", "--max-restarts=0", "-m", "training.cli"])
     args.training_script_args = _without_nproc(argv)  # set here: torchrun's parser would read them
     try:
         # an OMP_NUM_THREADS already set is the user's (kept); torchrun would otherwise set 1 (with a banner)

@@ -26,7 +26,7 @@ from imaging.errors import DatasetError, ExrError
 from imaging.exr import read_exr
 from imaging.naming import image_name
 from model.noise_input import noise_channels
-from model.patches import TrainingPair
+from training.patches import TrainingPair
 from model.transfer import HDR_MAX, TransferFunction
 
 DATASET_VERSION = 1

@@ -16,8 +16,8 @@ import numpy as np
 import torch
 
 from imaging.metrics import psnr, relmse
-from model.dataset import ValImage
-from model.infer import denoise_image
+from training.dataset import ValImage
+from denoise.chain import denoise_image
 
 Metrics = tuple[float, float]  # (PSNR dB, relMSE)
 

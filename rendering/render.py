@@ -1,9 +1,9 @@
 """The rendering core: load a prepared scene, render at a given spp/seed, return linear radiance.
 
-Every render goes through :mod:`imaging.scene_io`, so it uses a box pixel filter and a float32
+Every render goes through :mod:`rendering.scene_io`, so it uses a box pixel filter and a float32
 film. Large sample counts are split into passes (independent seeds) of at most
 ``max_samples_per_pass`` samples, whose mean is returned. A film too large for the memory budget
-is rendered in crops (:mod:`imaging.render_crops`), each written straight into the output images.
+is rendered in crops (:mod:`rendering.render_crops`), each written straight into the output images.
 """
 from __future__ import annotations
 
@@ -17,10 +17,10 @@ from typing import Any
 
 import numpy as np
 
-from imaging.backend import select_variant
+from rendering.backend import select_variant
 from imaging.errors import RenderError, SceneError
-from imaging.render_crops import Crop, crop_layout, crop_seed, cropped, film_window, max_crop_pixels
-from imaging.scene_io import AOV_TYPES, PreparedScene, prepare_dict, prepare_xml
+from rendering.render_crops import Crop, crop_layout, crop_seed, cropped, film_window, max_crop_pixels
+from rendering.scene_io import AOV_TYPES, PreparedScene, prepare_dict, prepare_xml
 
 DEFAULT_MAX_SAMPLES_PER_PASS = 1 << 24
 DEFAULT_MAX_MEMORY_MB = 1024.0  # the commands' --max-memory-mb default
@@ -44,7 +44,7 @@ class RenderResult:
     seconds: float = 0.0
     variant: str = ""
     variance: np.ndarray | None = None  # HxWx3 variance of ``rgb``'s estimate (``halves`` renders)
-    crops: int = 1  # film crops rendered one after the other (imaging.render_crops)
+    crops: int = 1  # film crops rendered one after the other (rendering.render_crops)
 
 
 def _one_line(exc: BaseException) -> str:
@@ -105,7 +105,7 @@ def prepare(
     params: Mapping[str, Any] | None = None,
     base_dir: str | Path | None = None,
 ) -> PreparedScene:
-    """Prepare a scene file path or scene dict (see :mod:`imaging.scene_io`).
+    """Prepare a scene file path or scene dict (see :mod:`rendering.scene_io`).
 
     ``base_dir`` resolves a dict scene's relative asset paths (XML scenes use their own folder).
     """
@@ -219,7 +219,7 @@ def render_loaded(
     (:func:`half_variance`); the image has the same expectation and spp.
 
     ``max_memory_mb`` bounds the render's scratch memory beyond the returned images: a film whose
-    pixels do not fit is rendered in crops with seeds of their own (:mod:`imaging.render_crops`;
+    pixels do not fit is rendered in crops with seeds of their own (:mod:`rendering.render_crops`;
     None: one piece). The image is a deterministic function of (scene, spp, seed, aovs, halves,
     crop layout); a render in one crop (any film that fits) is the same whatever the budget; other
     layouts draw other samples from the same distribution.

@@ -18,7 +18,7 @@ needs no second render (a 1-spp render, a file from elsewhere), and measured as 
 variance of the render's two halves where those exist (docs/noise-guard.md). Where the difference
 is within the render's own spread the output is left alone; where it is several standard errors
 off, matched. Values are clamped at ``clamp`` (radiance after the network's exposure scale,
-:func:`model.infer.exposure_scale`) before anything is summed: one firefly of 1000 would otherwise
+:func:`denoise.chain.exposure_scale`) before anything is summed: one firefly of 1000 would otherwise
 make a whole window's mean.
 
 ``benchmarks/energy.py`` measured the settings on our held-out scenes (1-16 spp) and scores them
@@ -31,7 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from imaging.blocks import block_rows, parallel_map, row_blocks
-from imaging.box_filter import box_sum_2d
+from denoise.box_filter import box_sum_2d
 from model.transfer import HDR_MAX
 
 # Peak scratch bytes per pixel of a row block: a clamped float32 copy summed by :func:`block_sums`,

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import torch
 
 from imaging.errors import TrainingError
-from model.loss import GRADIENT_WEIGHT, denoising_loss
+from training.loss import GRADIENT_WEIGHT, denoising_loss
 
 
 def learning_rate(base_lr: float, decay: float, decay_every: int, step: int, warmup: int = 0,
@@ -81,7 +81,7 @@ def train_step(model: torch.nn.Module, optimizer: torch.optim.Optimizer, noisy: 
     own statistics and updates its running statistics once per chunk).
     ``gradient_weight``: share of the gradient-L1 term in the loss, ``log_eps`` > 0: the mean of
     the patches' log losses, ``ms_ssim_weight``: share of 1 - MS-SSIM, ``loss_norm`` and ``loss_space``
-    (its ``norm`` and ``to_space``; all :func:`model.loss.denoising_loss`).
+    (its ``norm`` and ``to_space``; all :func:`training.loss.denoising_loss`).
     ``reduce_loss`` maps each chunk's loss to the value all data-parallel processes agree on (the
     mean over DDP ranks, NaN if any rank's is NaN), so that every rank skips the same steps;
     None keeps this process's own value.

@@ -1,11 +1,11 @@
 """An inference-only copy of a trained :class:`model.unet.MultiScaleDenoiser`: same function, less work.
 
-The same rewrites as :mod:`model.inference_net` (exact up to float32 rounding), plus what the
+The same rewrites as :mod:`denoise.inference_net` (exact up to float32 rounding), plus what the
 encoder/decoder shape allows:
 
 * **BatchNorm folded** into the conv before it (stem, every bottleneck's 1x1), and every BN-ReLU
   in front of a 1x1 conv (bottleneck layers, transitions down and up) rewritten as one clamp
-  whose scale and shift live in the conv (:class:`model.inference_net._ClampConv1x1`).
+  whose scale and shift live in the conv (:class:`denoise.inference_net._ClampConv1x1`).
 * **Pool before the transition's 1x1 conv.** 2x2 average pooling and a 1x1 conv (with bias) are
   both linear per pixel, so they commute: the conv runs on a quarter of the pixels.
 * **No concatenation.** Each level owns one preallocated buffer laid out as
@@ -16,13 +16,13 @@ encoder/decoder shape allows:
   ``[up | skip | ...]``, so their weights are permuted to match.
 * **Nearest upsampling written in place** through a strided view of the buffer (one pass).
 * **channels_last** activations and weights.
-* **One scratch for the clamps** (:func:`model.inference_net.scratch_view`): every clamp of a
+* **One scratch for the clamps** (:func:`denoise.inference_net.scratch_view`): every clamp of a
   forward pass, and the tail's affine map, write into one flat buffer sized for the largest.
 * **The full-resolution head** (``head`` > 0) runs as two plain convs on channels_last input.
 * **The predicted filter** (``kernel`` > 0): its coefficients' conv1x1 reads the tail's BN-ReLU
   output like the tail; the filter runs in float32 a band of rows at a time, each band's
   coefficients pixel-shuffled on their own (:func:`model.unet.add_kernel_`).
-* **Optionally bfloat16** (``dtype``, :mod:`model.precision`): weights and activations; the input
+* **Optionally bfloat16** (``dtype``, :mod:`denoise.precision`): weights and activations; the input
   is built and the residual added in float32.
 * **Unshuffle and shuffle as strided copies.** The network input (RGB, its gradients, the rest)
   is written into one padded NHWC buffer, and the pixel-unshuffle to half resolution is one copy
@@ -43,7 +43,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from model.config import ModelConfig
-from model.inference_net import _AffineReLU, _ClampConv1x1, _Conv, bn_affine, fold_conv_bn, padded_input
+from denoise.inference_net import _AffineReLU, _ClampConv1x1, _Conv, bn_affine, fold_conv_bn, padded_input
 from model.unet import Block, MultiScaleDenoiser, add_kernel_, alignment
 
 
@@ -94,7 +94,7 @@ def shuffle_order(channels: int) -> torch.Tensor:
 
 
 def unshuffled_input(image: torch.Tensor, align: int, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
-    """The network input of an NxCxHxW ``image`` padded to ``align`` (:func:`model.inference_net.padded_input`)
+    """The network input of an NxCxHxW ``image`` padded to ``align`` (:func:`denoise.inference_net.padded_input`)
     and its 2x2 unshuffle in :func:`shuffle_order`. Returns (the padded input, NxHpxWpx(C+6)
     float32 NHWC, the unshuffle, an Nx4(C+6)x(Hp/2)x(Wp/2) channels_last tensor of ``dtype``)."""
     p = padded_input(image, align)

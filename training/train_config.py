@@ -1,4 +1,4 @@
-"""The typed training configuration, filled by ``model.cli`` and saved as JSON beside each run.
+"""The typed training configuration, filled by ``training.cli`` and saved as JSON beside each run.
 
 Optimisation defaults follow Kim & Lee: Adam, lr 0.01, multiplied by 0.9 every 10,000 steps,
 batch 64, 28x28 patches. ``grad_clip`` (off by default, as in the paper) clips the total L2
@@ -25,9 +25,9 @@ from typing import Any
 
 from imaging.errors import ConfigError
 from model.config import ModelConfig, PRESETS
-from model.loss import NORMS as LOSS_NORMS, SSIM_WINDOW
-from model.patches import PatchConfig
-from model.step import learning_rate
+from training.loss import NORMS as LOSS_NORMS, SSIM_WINDOW
+from training.patches import PatchConfig
+from training.step import learning_rate
 
 LOSS_SPACES = ("transfer", "display")  # TrainConfig.loss_space
 
@@ -55,11 +55,11 @@ class TrainConfig:
     channels are zeroed (marked unknown), so that it also works on images without a variance.
     ``gradient_weight``: share of the gradient L1 in the loss (the paper's 0.1; 0: plain L1).
     ``log_loss_eps`` > 0: minimise the mean over patches of log(patch loss + eps) instead of the
-    mean loss (:mod:`model.loss`: every spp level counts per relative gain, as mean PSNR does).
-    ``ms_ssim_weight`` > 0: share of 1 - MS-SSIM in the loss (:mod:`model.loss`; Zhao et al.'s and
+    mean loss (:mod:`training.loss`: every spp level counts per relative gain, as mean PSNR does).
+    ``ms_ssim_weight`` > 0: share of 1 - MS-SSIM in the loss (:mod:`training.loss`; Zhao et al.'s and
     OIDN's mix: 0.84 with ``gradient_weight`` 0); needs patches of at least 11 px.
     ``loss_norm``: "l1" (the paper's) or "l2" (squared differences in both loss terms: each pixel's
-    conditional mean, which PSNR rewards, instead of its median; :mod:`model.loss`).
+    conditional mean, which PSNR rewards, instead of its median; :mod:`training.loss`).
     ``loss_space``: "transfer" (the network's own space, the paper's) or "display" (the metrics'
     tonemap, :meth:`model.transfer.TransferFunction.display`: the space PSNR is measured in).
     ``max_scenes`` > 0: train and validate on the scenes with index below it only (the dataset

@@ -4,7 +4,7 @@ exposure (an image whose log-average luminance lies outside the training data's 
 by a power of two towards the training median, undone at the end) -> sanitise (NaN/Inf/negative
 -> 0, > HDR_MAX clamped) -> transfer (+ the noise channels of :mod:`model.noise_input` for a model
 that takes them) -> network on core tiles with a margin of the receptive-field radius, on the
-network's alignment grid (exact: :mod:`imaging.tiling`) -> clamp in transfer space to [0, the
+network's alignment grid (exact: :mod:`denoise.tiling`) -> clamp in transfer space to [0, the
 largest input value (of any channel) within ``BOUND_RADIUS`` pixels] (:func:`neighbourhood_max`; a
 denoiser averages, so an output brighter than every input around it is a network failure, not
 detail: the multi-scale nets were measured turning a firefly's neighbourhood into a patch of 65504,
@@ -17,7 +17,7 @@ With a variance and ``skip_below``, the parts of the image whose noise is alread
 level (transfer-space standard deviation, per 64-px cell) are not run through the network: they
 come back as the (sanitised) render, and the network runs on the smallest aligned rectangle that
 holds every noisy cell, with its full margin, so its output there is unchanged.
-Validation during training and :class:`pipeline.denoise.Denoiser` both call :func:`denoise_image`.
+Validation during training and :class:`denoise.denoiser.Denoiser` both call :func:`denoise_image`.
 """
 from __future__ import annotations
 
@@ -29,10 +29,10 @@ import torch
 from torch import nn
 
 from imaging.blocks import block_rows, parallel_map, pass_workers, row_blocks
-from imaging.tiling import Core, Tile, run_windows
+from denoise.tiling import Core, Tile, run_windows
 from model.architectures import alignment, inference_bytes_per_pixel, receptive_radius
 from model.config import ModelConfig
-from model.flips import FLIPS, check_flips
+from denoise.flips import FLIPS, check_flips
 from model.noise_input import noise_channels
 from model.transfer import HDR_MAX, TransferFunction, get_transfer
 from model.unet import pad_to_alignment
@@ -187,7 +187,7 @@ def neighbourhood_max(image: torch.Tensor, radius: int) -> torch.Tensor:
 
 
 def flip_average(model: nn.Module, x: torch.Tensor, flips: int, align: int) -> torch.Tensor:
-    """The mean of ``model``'s outputs over the ``flips`` mirrored copies of ``x`` (:mod:`model.flips`),
+    """The mean of ``model``'s outputs over the ``flips`` mirrored copies of ``x`` (:mod:`denoise.flips`),
     each mirrored back. The input is first padded to the network's alignment (bottom and right,
     as the network itself pads), so that a mirrored tile window keeps the whole image's pooling
     grid and tiles stay exact; the output is cropped back."""
@@ -265,7 +265,7 @@ def denoise_image(model: nn.Module, color: np.ndarray, aux: Aux = None,
         h, w = t.wy1 - t.wy0, t.wx1 - t.wx0
         rgb = _scaled(color[t.wy0:t.wy1, t.wx0:t.wx1], scale)
         # filled part by part (no concatenation), each pixel's channels side by side as the folded
-        # nets read them (model.inference_net.padded_input: 1.5x faster from channels_last at 720p)
+        # nets read them (denoise.inference_net.padded_input: 1.5x faster from channels_last at 720p)
         x = torch.empty(1, config.image_channels, h, w, memory_format=torch.channels_last)
         encoded = transfer.forward(torch.from_numpy(rgb))
         x[0, :3] = encoded.permute(2, 0, 1)

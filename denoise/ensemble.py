@@ -5,7 +5,7 @@ Two networks of different shapes make different errors: measured on our held-out
 the multi-scale ``u-high`` from 1 to 16 spp (context), and each is better in some places of every
 image. Their plain mean gains at a few spp and loses from 64 spp up, where one of them is clearly
 better locally. The render's two halves tell which: with ``y_k`` a denoiser's output, ``x`` the
-render and ``V`` the window mean of the halves' variance estimate (:mod:`pipeline.noise_guard`),
+render and ``V`` the window mean of the halves' variance estimate (:mod:`denoise.noise_guard`),
 the window mean ``D_k`` of ``(y_k - x)^2`` (summed over channels) estimates ``V + T_k`` where
 ``T_k`` is that output's own squared error, so ``T_k ~ max(0, D_k - V)``. Each output is weighted
 by ``(1 / (T_k + lam * V))^power``: close to choosing the smaller error where the render has
@@ -17,7 +17,7 @@ Without a variance (a single EXR) the outputs are averaged.
 (flat in all three: radius 2-5, lam 0.1-1, power 1-2 within 0.05 dB) and scores the result on the
 eval scenes; power 2 rather than 1 because where renders have converged (``benchmarks/noise_guard.py``'s
 converged regime) inverse errors still let the worse output in across a sharp edge (the teapot on
-black: 0.8-1.0 dB lower after the guard), where their squares keep it out. Window sums are exact per tile (:func:`imaging.box_filter.box_mean_2d`), so
+black: 0.8-1.0 dB lower after the guard), where their squares keep it out. Window sums are exact per tile (:func:`denoise.box_filter.box_mean_2d`), so
 :func:`combine_in_place` gives the whole-image result bit for bit within any memory bound.
 """
 from __future__ import annotations
@@ -28,9 +28,9 @@ from collections.abc import Sequence
 import numpy as np
 
 from imaging.blocks import row_blocks
-from imaging.box_filter import box_mean_2d
-from imaging.tiling import Tile, core_for_budget, run_windows
-from pipeline.noise_guard import channel_sum, clean_render
+from denoise.box_filter import box_mean_2d
+from denoise.tiling import Tile, core_for_budget, run_windows
+from denoise.noise_guard import channel_sum, clean_render
 
 DEFAULT_RADIUS = 3  # window 7x7 (benchmarks/ensemble.py)
 DEFAULT_LAMBDA = 0.3  # T_k + lam * V (benchmarks/ensemble.py)

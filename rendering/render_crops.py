@@ -9,7 +9,7 @@ film storage and developed image, and our float64 accumulators. So the budget bo
 rendered at once, not the samples per pass: a film whose pixels do not fit is rendered as crops
 (Mitsuba's film crop window), one after the other, each written into the output images.
 
-With the box filter every render uses (:mod:`imaging.scene_io`), a sample only ever lands in
+With the box filter every render uses (:mod:`rendering.scene_io`), a sample only ever lands in
 the pixel it was drawn in, so crops stitch exactly: a pixel's estimate has the same distribution
 whichever crop rendered it (no seams). Each crop has its own seed (:func:`crop_seed`; crop 0 keeps
 the render's seed, so a render that fits in one crop is the render made without crops): Mitsuba's
