@@ -43,7 +43,7 @@ from imaging.metrics import psnr
 from rendering.render import RenderResult
 from console.usage import COMMAND_ERRORS, OneLineParser, int_list
 from denoise.chain import image_exposure
-from denoise.denoiser import DEFAULT_MODEL, Denoiser
+from denoise.denoiser import Denoiser
 from denoise.energy import EnergySettings, apply_ratio, block_statistics, block_sums, correct_in_place, ratio_map
 from denoise.oidn import oidn_denoise
 
@@ -198,7 +198,7 @@ def main(argv: list[str] | None = None) -> int:
         settings.insert(0, EnergySettings())
     labels = [label(s) for s in settings]
     try:
-        denoiser = Denoiser(list(DEFAULT_MODEL), energy=None)
+        denoiser = Denoiser(None, energy=None)
         record = run_record("benchmarks.energy", argv)
         start = time.perf_counter()
         result: dict[str, Any] = {"model": denoiser.name, "settings": [vars(s) for s in settings], "seed": SEED}

@@ -16,7 +16,7 @@ converged 4096-spp image before and after denoising, and peak memory denoising a
   image in RAM, one small warm-up image denoised).
 
 Prints a table and writes benchmarks/results/extremes.json (the entry of the other mode is kept).
-The model defaults to the shipped default (denoise.denoiser.DEFAULT_MODEL); an ensemble's members
+The model defaults to the registry's default (model.registry); an ensemble's members
 run as for the spp of each image (energy: 16; constants, zero and memory: 1; the default runs two
 networks at any spp, its U-Nets of one shape).
 """

@@ -1,19 +1,21 @@
 """Inference speed of the whole denoising chain against OIDN, side by side, per megapixel.
 
-For each size (128x128, 256x256, 1280x720, 1920x1080) and each model (presets with random
-weights and non-trivial BatchNorm statistics — weights do not change speed — or checkpoint
-files) it times what a user's call costs: :meth:`denoise.denoiser.Denoiser.denoise_array` on a
-render made of two halves (image + variance: sanitise, exposure, transfer, noise channels, tiles,
-the folded network, inverse, noise guard), as for a render of ``SPP`` (1) samples per pixel, so an
-ensemble whose members are limited to spp ranges runs its low-spp ones (the default: two networks
-at any spp), the model loaded once as a user's program would, and
-OIDN 2 colour-only (``pyoidn``) on the same image. Variants run round-robin, so a noisy neighbour
+For each size (128x128, 256x256, 1280x720, 1920x1080), each model (registry names, checkpoint
+files or expert specs; architecture presets with random weights and non-trivial BatchNorm
+statistics — weights do not change speed) and each ``--spp`` it times what a user's call costs:
+:meth:`denoise.denoiser.Denoiser.denoise_array` on a render made of two halves (image + variance:
+sanitise, exposure, transfer, noise channels, tiles, the folded networks, their combination,
+inverse, noise guard, energy correction) of that many samples per pixel, so each model runs the
+networks meant for that spp (``unknown``: one image without variance or spp, what ``denoise`` runs
+on a file that does not say its spp), the model loaded once as a user's program would, and
+OIDN 2 colour-only (``pyoidn``) on the same image. A variant is named ``MODEL[@PRECISION]|SPP``;
+``ratios`` gives, per size, each model's median per-process time ratio to OIDN at each spp. Variants run round-robin, so a noisy neighbour
 slows them alike; the median of ``--repeat`` runs is reported with the load average seen (a busy
 machine makes every number worse and small images worst: torch's two threads wait for each
 other at every layer). ``--threads`` sets torch's threads (0: the Denoiser's own choice).
 
     python -m benchmarks.inference [--quick] [--sizes 128x128,256x256,1280x720,1920x1080]
-        [--models u-fast,u-balanced,u-high,fast] [--precisions float32,bfloat16] [--repeat 5]
+        [--models fast,balanced,high] [--spp 4,16,128,unknown] [--precisions auto] [--repeat 5]
         [--processes 3] [--threads N]
 
 ``--processes N`` (default 3) repeats all of it in N fresh processes, one after the other, and pools
@@ -23,9 +25,8 @@ figure is the median of all runs of all processes; beside it the range of the pe
 ratios to OIDN (``process_s_per_mp``: each process's median).
 
 Each model runs in every ``--precisions`` float format (:mod:`denoise.precision`; a bfloat16 column
-is named ``model@bfloat16``), or only in the one its ``--models`` entry names (``fast+u-high@auto``:
-an ensemble, :mod:`denoise.ensemble`, each member in its own ``auto`` format); the JSON records
-whether the CPU computes bfloat16 natively.
+is named ``model@bfloat16``), or only in the one its ``--models`` entry names (``high@auto``: each
+network in its own ``auto`` format); the JSON records whether the CPU computes bfloat16 natively.
 
 Also prints where the time of one call goes at the smallest size (stages of the chain).
 ``--quick``: 256x256 only, one run. Prints a table and writes benchmarks/results/inference.json.
@@ -56,28 +57,23 @@ from model.checkpoint import save_checkpoint
 from model.config import PRESETS, preset
 from denoise.precision import PRECISIONS, native_bfloat16
 from model.unet import macs_per_pixel
-from denoise.denoiser import DEFAULT_MODEL, Denoiser, ensemble_members, resolve_members, shipped_members
-from denoise.ensemble import SEPARATOR, range_suffix, spp_range
+from denoise.denoiser import Denoiser, select
+from model.registry import registry
+from imaging.errors import DenoiserError
 from denoise.oidn import oidn_available, oidn_denoise
 
 RESULTS = Path(__file__).resolve().parent / "results" / "inference.json"
 SIZES = ((128, 128), (256, 256), (1280, 720), (1920, 1080))
-SPP = 1  # the spp each call is made for: an ensemble's low-spp members run (the most it costs)
+SPPS = (4, 16, 128, "unknown")  # the default --spp: the cards' spp and a file that does not say it
+STAGES_SPP = 4  # the spp of the stages' breakdown
 
 
-def _checkpoint(name: str, folder: Path) -> Path:
-    """A preset with random weights (as after training: BN statistics, a non-zero output conv);
-    an ensemble ``A+B`` (:mod:`denoise.ensemble`) the ``+``-joined paths of its members;
-    ``default`` the shipped default (:data:`denoise.denoiser.DEFAULT_MODEL`)."""
-    if name == "default":  # the shipped default ensemble, its members' own weights and spp ranges
-        return Path(SEPARATOR.join(shipped_members(SEPARATOR.join(DEFAULT_MODEL))))
-    if len(ensemble_members(name)) > 1:
-        return Path(SEPARATOR.join(str(_checkpoint(part, folder)) for part in ensemble_members(name)))
-    model, lo, hi = spp_range(name)
-    if model != name:  # a member limited to an spp range: ``u-fast:-16``
-        return Path(f"{_checkpoint(model, folder)}{range_suffix(lo, hi)}")
-    if name not in PRESETS:
-        return Path(name)
+def _checkpoint(name: str, folder: Path) -> str:
+    """What ``Denoiser`` loads for a ``--models`` entry: an architecture preset gets random weights
+    (as after training: BN statistics, a non-zero output conv) in ``folder``; anything else (a
+    registry name, a checkpoint file, an expert spec) is passed on as it is."""
+    if name not in PRESETS or name in registry().names:
+        return name
     torch.manual_seed(0)
     model = build_model(preset(name))
     with torch.no_grad():
@@ -89,7 +85,7 @@ def _checkpoint(name: str, folder: Path) -> Path:
         torch.nn.init.normal_(last.weight, std=0.01)
     path = folder / f"{name}.ckpt"
     save_checkpoint(path, model, step=0)
-    return path
+    return str(path)
 
 
 def _render(width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
@@ -107,16 +103,29 @@ def _macs(config: Any) -> float:
         9 * (c0 + n * k) * 3
 
 
-def denoiser_macs(den: Denoiser) -> float:
-    """MACs per pixel of a call at the benchmark's spp: the members that run at :data:`SPP`
-    (an ensemble member limited to other spp costs nothing there)."""
-    return sum(_macs(member.config) for member in den.active(SPP))
+def denoiser_macs(den: Denoiser, spp: int | None) -> float:
+    """MACs per pixel of a call at ``spp``: the networks that run there."""
+    return sum(_macs(member.config) for member in den.active(spp))
 
 
-def measure_size(width: int, height: int, models: dict[str, Denoiser], repeat: int) -> dict[str, Any]:
-    """Median seconds of every model and of OIDN on one image size (round-robin over repeats)."""
+def _spp(value: int | str) -> int | None:
+    return None if value == "unknown" else int(value)
+
+
+def call(den: Denoiser, img: np.ndarray, var: np.ndarray, spp: int | str) -> Any:
+    """One user's call at ``spp``: the image and its variance, or for ``unknown`` the image alone."""
+    if _spp(spp) is None:
+        return den.denoise_array(img)
+    return den.denoise_array(img, variance=var, spp=_spp(spp))
+
+
+def measure_size(width: int, height: int, models: dict[str, Denoiser], repeat: int,
+                 spps: list[int | str]) -> dict[str, Any]:
+    """Median seconds of every model at every spp and of OIDN on one image size (round-robin
+    over repeats)."""
     img, var = _render(width, height)
-    variants = {name: (lambda d=den: d.denoise_array(img, variance=var, spp=SPP)) for name, den in models.items()}
+    variants = {f"{name}|{spp}": (lambda d=den, s=spp: call(d, img, var, s))
+                for name, den in models.items() for spp in spps}
     if oidn_available():
         variants["oidn"] = lambda: oidn_denoise(img)
     for fn in variants.values():  # warm-up: first-call allocations and kernel selection
@@ -144,7 +153,7 @@ def stages(den: Denoiser, width: int, height: int, repeat: int) -> dict[str, flo
     img, var = _render(width, height)
     transfer = get_transfer(den.config.transfer)
     x = torch.rand(1, den.config.image_channels, height, width)
-    out = den.denoise_array(img, variance=var, spp=SPP).image
+    out = den.denoise_array(img, variance=var, spp=STAGES_SPP).image
     parts = {
         "count_invalid": lambda: count_invalid(img),
         "exposure": lambda: exposure_scale(img),
@@ -153,7 +162,7 @@ def stages(den: Denoiser, width: int, height: int, repeat: int) -> dict[str, flo
         "network": lambda: den.net(x),
         "guard": lambda: guard_in_place(img, out.copy(), var, np.empty((height, width, 1), np.float32),
                                         den.max_bytes),
-        "whole call": lambda: den.denoise_array(img, variance=var, spp=SPP),
+        "whole call": lambda: den.denoise_array(img, variance=var, spp=STAGES_SPP),
     }
     result = {}
     with torch.inference_mode():
@@ -169,12 +178,30 @@ def stages(den: Denoiser, width: int, height: int, repeat: int) -> dict[str, flo
 
 
 def _key(name: str, precision: str) -> str:
-    """The column of a model in a float format: its name for float32, ``name@precision`` else."""
-    return name if precision == "float32" else f"{name}@{precision}"
+    """The column of a model in a float format: its name for ``auto`` (what a user gets),
+    ``name@precision`` else."""
+    return name if precision == "auto" else f"{name}@{precision}"
+
+
+def ratios(sizes: dict[str, Any]) -> dict[str, dict[str, dict[str, float]]]:
+    """Per size, each model's median per-process time ratio to OIDN at each spp (``MODEL|SPP``
+    variants): ``{size: {model: {spp: ratio}}}``; empty without OIDN."""
+    out: dict[str, dict[str, dict[str, float]]] = {}
+    for size, row in sizes.items():
+        oidn = row.get("oidn", {}).get("process_s_per_mp")
+        if not oidn:
+            continue
+        for key, value in row.items():
+            if "|" not in key:
+                continue
+            model, spp = key.split("|")
+            per_process = [a / b for a, b in zip(value["process_s_per_mp"], oidn)]
+            out.setdefault(size, {}).setdefault(model, {})[spp] = statistics.median(per_process)
+    return out
 
 
 def table(results: dict[str, Any]) -> list[str]:
-    names = results["models"]
+    names = [k for k in next(iter(results["sizes"].values())) if k != "oidn"]
     lines = [f"{'size':>10} " + " ".join(f"{n + ' s/MP':>16}" for n in names) + f" {'OIDN s/MP':>10} "
              + " ".join(f"{n + '/OIDN':>22}" for n in names)]
     for size, row in results["sizes"].items():
@@ -195,10 +222,12 @@ def measure_process(spec: dict[str, Any]) -> dict[str, Any]:
     models = {_key(name, prec): Denoiser(path, threads=spec["threads"] or None, precision=prec)
               for name, path in spec["files"].items() for prec in spec["precisions"].get(name, spec["all"])}
     out: dict[str, Any] = {"models": list(models), "torch_threads": torch.get_num_threads(),
-                           "macs_per_pixel": {n: denoiser_macs(m) for n, m in models.items()},
+                           "macs_per_pixel": {f"{n}|{s}": denoiser_macs(m, _spp(s))
+                                              for n, m in models.items() for s in spec["spp"]},
+                           "sha256": {n: m.sha256 for n, m in models.items()},
                            "sizes": {}}
     for w, h in spec["sizes"]:
-        row = out["sizes"][f"{w}x{h}"] = measure_size(w, h, models, spec["repeat"])
+        row = out["sizes"][f"{w}x{h}"] = measure_size(w, h, models, spec["repeat"], spec["spp"])
         print(f"... {w}x{h}: " + ", ".join(f"{k} {v['s_per_mp']:.2f} s/MP" for k, v in row.items()),
               file=sys.stderr, flush=True)
     if spec["stages"]:
@@ -226,10 +255,12 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--quick", action="store_true", help="256x256 only, one run, one process")
     p.add_argument("--sizes", type=size_list, default=list(SIZES))
-    p.add_argument("--models", default="u-fast,u-balanced,u-high,fast",
-                   help="preset names (random weights), checkpoint files, ensembles A+B or 'default' (the "
-                        "shipped default); NAME@PRECISION runs that model in that float format only")
-    p.add_argument("--precisions", default="float32,bfloat16",
+    p.add_argument("--models", default="fast,balanced,high",
+                   help="registry names, checkpoint files, expert specs A+B or architecture presets (random "
+                        "weights); NAME@PRECISION runs that model in that float format only")
+    p.add_argument("--spp", default=",".join(map(str, SPPS)),
+                   help="comma-separated spp of the calls ('unknown': no spp and no variance)")
+    p.add_argument("--precisions", default="auto",
                    help="float formats of the networks (denoise.precision.PRECISIONS)")
     p.add_argument("--repeat", type=int, default=5)
     p.add_argument("--processes", type=int, default=3, help="fresh processes whose runs are pooled")
@@ -243,6 +274,7 @@ def main() -> None:
     if args.processes < 1 or args.repeat < 1:
         raise SystemExit("inference: --processes and --repeat must be at least 1")
     precisions = args.precisions.split(",")
+    spps: list[int | str] = [s if s == "unknown" else int(s) for s in args.spp.split(",")]
     if not set(precisions) <= set(PRECISIONS):
         raise SystemExit(f"inference: --precisions takes {', '.join(PRECISIONS)}, got {args.precisions!r}")
     sizes = [(256, 256)] if args.quick else args.sizes
@@ -255,14 +287,15 @@ def main() -> None:
         fixed = {name: [prec] for name, _, prec in entries if prec}
         if not {p for ps in fixed.values() for p in ps} <= set(PRECISIONS):
             raise SystemExit(f"inference: a model's @PRECISION takes {', '.join(PRECISIONS)}, got {args.models!r}")
-        missing = [name for name, path in files.items()
-                   if not all(p.is_file() for p, _, _ in resolve_members(path))]
-        if missing:
-            raise SystemExit(f"inference: not a preset nor a checkpoint file: {', '.join(missing)}")
+        for name, model in files.items():
+            try:
+                select(model)
+            except DenoiserError as exc:
+                raise SystemExit(f"inference: {name}: {exc}") from None
         measured = []
         for i in range(processes):
             spec = {"files": files, "precisions": fixed, "all": precisions, "sizes": sizes,
-                    "repeat": repeat, "threads": args.threads, "stages": i == 0}
+                    "repeat": repeat, "threads": args.threads, "stages": i == 0, "spp": spps}
             spec_file, out_file = Path(tmp) / f"spec{i}.json", Path(tmp) / f"out{i}.json"
             spec_file.write_text(json.dumps(spec))
             print(f"process {i + 1}/{processes}", file=sys.stderr, flush=True)
@@ -280,8 +313,10 @@ def main() -> None:
                     "torch_threads": first["torch_threads"], "loadavg_before": load_before,
                     "native_bfloat16": native_bfloat16(), "loadavg_after": os.getloadavg()},
         "quick": args.quick, "repeat": repeat, "processes": processes, "models": first["models"],
-        "macs_per_pixel": first["macs_per_pixel"], "sizes": pool(measured), "stages_ms": first["stages_ms"],
+        "macs_per_pixel": first["macs_per_pixel"], "sha256": first["sha256"], "spp": spps,
+        "sizes": pool(measured), "stages_ms": first["stages_ms"],
     }
+    results["ratios"] = ratios(results["sizes"])
     print("\n".join(table(results)))
     for size, per_model in results["stages_ms"].items():
         for name, parts in per_model.items():

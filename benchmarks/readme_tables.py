@@ -28,8 +28,8 @@ MARKERS = re.compile(r"(<!-- table:([a-z0-9_]+) -->\n)(.*?)(<!-- /table -->)", r
 
 
 class Results:
-    """The result files of one checkout: ``benchmarks/results/NAME.json`` and the shipped training
-    logs ``model/weights/PRESET_log.jsonl``."""
+    """The result files of one checkout: ``benchmarks/results/NAME.json`` and the training records
+    of the checkpoints, ``experiments/training/NAME/{log.jsonl,train_config.json}``."""
 
     def __init__(self, root: Path = ROOT) -> None:
         self.root = root
@@ -37,12 +37,12 @@ class Results:
     def json(self, name: str) -> dict[str, Any]:
         return json.loads((self.root / "benchmarks" / "results" / f"{name}.json").read_text())
 
-    def log(self, preset: str) -> list[dict[str, Any]]:
-        path = self.root / "model" / "weights" / f"{preset}_log.jsonl"
+    def log(self, name: str) -> list[dict[str, Any]]:
+        path = self.root / "experiments" / "training" / name / "log.jsonl"
         return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
 
-    def train_config(self, preset: str) -> dict[str, Any]:
-        return json.loads((self.root / "model" / "weights" / f"{preset}_train_config.json").read_text())
+    def train_config(self, name: str) -> dict[str, Any]:
+        return json.loads((self.root / "experiments" / "training" / name / "train_config.json").read_text())
 
 
 def _load(data: dict[str, Any]) -> str:
@@ -92,6 +92,83 @@ def _scoreboard_path(data: dict[str, Any]) -> str:
     return (f"Path: {data['path']}." if "path" in data else
             "Measured before the scoreboard used the default path: every model's bare network on one-piece "
             "renders (no noise guard); `python -m benchmarks.evaluate` now scores the default path.")
+
+
+def models(results: Results) -> list[str]:
+    """The README's one table: each registry entry and OIDN, PSNR at the cards' spp, FLIP at 16 spp
+    and time over OIDN's (1280x720, each at its dearest spp, named)."""
+    from model.registry import CARD_SPP, registry
+
+    evaluate, inference = results.json("evaluate"), results.json("inference")
+    scored = evaluate["summary"]["scored"]
+    ratios = inference.get("ratios", {}).get("1280x720", {})
+    rows = []
+    for name in registry().entries:
+        if any(name not in scored[str(s)]["models"] for s in CARD_SPP):
+            continue
+        known = {int(s): r for s, r in ratios.get(name, {}).items() if s != "unknown"}
+        dearest = max(known, key=lambda s: known[s]) if known else None
+        rows.append([f"`{name}`", *(_f(scored[str(s)]["models"][name]["psnr"]) for s in CARD_SPP),
+                     _f(scored["16"]["models"][name]["flip"], 3),
+                     f"{_f(known[dearest])}x at {dearest} spp" if dearest else "-"])
+    rows.append(["OIDN colour-only", *(_f(scored[str(s)]["oidn_psnr"]) for s in CARD_SPP),
+                 _f(scored["16"]["oidn_flip"], 3), "1.00x"])
+    header = ["model", *(f"PSNR {s} spp" for s in CARD_SPP), "FLIP 16 spp", "time / OIDN's"]
+    return [*_table(header, rows), "",
+            f"PSNR (dB, tonemapped) and FLIP: means over the {scored['scenes']} eval scenes with clean references "
+            f"({len(evaluate['scenes'])} public Mitsuba scenes none of the models saw), `python -m benchmarks.evaluate`,",
+            f"{evaluate.get('date', 'date not recorded')}. Time: one call on a 1280x720 render over OIDN's in the "
+            f"same run, at the spp where the model costs most,",
+            f"`python -m benchmarks.inference`, {inference.get('date', 'date not recorded')}, {_load(inference)}. "
+            "Every model and scene: [evaluate](docs/evaluate.md)."]
+
+
+def strip_caption(results: Results) -> list[str]:
+    """The line under the README's picture: what it shows and the PSNR of each panel's whole image."""
+    data = results.json("figures")["strip"]
+    values = ", ".join(f"{label} {_f(value)} dB" for label, value in data["psnr_db"].items() if value is not None)
+    return [f"Crops of `{data['scene']}` (an eval scene) at {data['spp']} spp; PSNR of the whole image: {values}.",
+            "Made by `python -m benchmarks.figures` → benchmarks/results/figures.json."]
+
+
+def unknown_spp(results: Results) -> list[str]:
+    """Each model on images whose spp it is not told (no variance, no guard), per spp, beside the noisy input."""
+    data = results.json("unknown_spp")
+    means = data["means_psnr"]
+    rows = [[spp, _f(m["noisy"]), *(_f(m[n]) for n in data["models"])] for spp, m in means.items()]
+    note = (f"Mean PSNR dB over {data['source']} ({next(iter(means.values()))['images']} scored images per spp), "
+            "each image denoised alone: no spp, no variance, so no noise guard, as `denoise` runs a file that "
+            "does not say its spp.")
+    return [caption("python -m benchmarks.unknown_spp", "benchmarks/results/unknown_spp.json", data, note), "",
+            *_table(["spp", "noisy", *data["models"]], rows)]
+
+
+def image_noise(results: Results) -> list[str]:
+    """Per pixel filter and spp, the share of renders :mod:`denoise.image_noise` calls filtered."""
+    data = results.json("image_noise")
+    spps = list(next(iter(data["summary"].values())))
+    rows = [[name, *(f"{100 * s[spp]['called_filtered']:.0f}% ({_f(s[spp]['ratio_min'])}-{_f(s[spp]['ratio_max'])})"
+                     for spp in spps)] for name, s in data["summary"].items()]
+    images = next(iter(next(iter(data["summary"].values())).values()))["images"]
+    note = (f"{images} scenes each; called filtered: Nyquist ratio under {data['threshold']:g}; in brackets the "
+            "ratios seen (independent pixels give about 1).")
+    return [caption("python -m benchmarks.image_noise", "benchmarks/results/image_noise.json", data, note), "",
+            *_table(["pixel filter", *(f"{spp} spp" for spp in spps)], rows)]
+
+
+def denoise_process(results: Results) -> list[str]:
+    """``denoise`` as a process on EXRs without an spp, marginal s/MP against OIDN's."""
+    data = results.json("denoise_process")
+    rows = []
+    for kind, entry in data["results"].items():
+        for name, c in entry["commands"].items():
+            ratio = f"{_f(c['ratio_to_oidn'])}x" if "ratio_to_oidn" in c else "1.00x"
+            rows.append([f"{kind} ({entry['spp']} spp)", f"`{name}`" if name != "oidn" else "OIDN colour-only",
+                         _f(c["marginal_s_per_mp"]), ratio])
+    note = (f"Marginal seconds per megapixel between {' and '.join(data['sizes'])} (start-up cancels), medians "
+            "of fresh processes; the demo scene written as an EXR with no spp attribute.")
+    return [caption("python -m benchmarks.denoise_process", "benchmarks/results/denoise_process.json", data, note), "",
+            *_table(["input", "command", "marginal s/MP", "over OIDN"], rows)]
 
 
 def scoreboard(results: Results) -> list[str]:
@@ -286,17 +363,6 @@ def multiscale_presets(results: Results) -> list[str]:
                      "receptive radius"], rows)]
 
 
-def science(results: Results) -> list[str]:
-    """Designs trained for equal CPU time on the same data (benchmarks/science.py)."""
-    from benchmarks.science import table
-
-    data = results.json("science")
-    lines = table(data)
-    return [caption("python -m benchmarks.science report", "benchmarks/results/science.json", data,
-                    "Every run from scratch on the same scenes and seed until its optimisation used the same "
-                    "process CPU time (`train --cpu-minutes`)."), "", *lines[2:]]
-
-
 def roofline(results: Results) -> list[str]:
     """Each preset's convolutions alone: s/MP at inference, patches/s of a training step."""
     data = results.json("roofline")
@@ -324,8 +390,8 @@ def budget(results: Results) -> list[str]:
 
 # --- training --------------------------------------------------------------------------------------
 
-TRAINED = ("pretrain_fast", "fast", "balanced", "high")
-TRAIN_COMMAND = "train --out runs/<preset> ... (docs/training.md)"
+TRAINED = ("flat-s-allspp", "flat-s-lowspp", "unet-m-k5-lowspp", "unet-m-k5-lowspp-b", "unet-l-allspp")
+TRAIN_COMMAND = "train --recipe NAME --out runs/NAME (docs/training.md)"
 
 
 def presets(results: Results) -> list[str]:
@@ -337,22 +403,24 @@ def presets(results: Results) -> list[str]:
         best = max(val, key=lambda r: r["psnr"])
         train_s = next((r["train_s"] for r in log if r["type"] == "train" and r["step"] == best["step"]), None)
         m = cfg["model"]
-        rows.append([f"`{preset}`", f"{m['growth']}, {m['layers']}", _f(best["step"]), _f(log[-1]["step"]),
+        rows.append([f"`{preset}`", f"{m.get('arch', 'densenet')}: k {m['growth']}, L {m['layers']}",
+                     _f(best["step"]), _f(log[-1]["step"]),
                      _f(train_s / 60 if train_s else None, 1), str(best["images"]), _f(best["psnr"])])
-    note = ("Validation: whole 128x128 images of the run's held-out scenes at 4-128 spp (`images`: their "
-            "count; `pretrain_fast` validated on another, smaller set); minutes: optimisation time to the best step.")
-    return [caption(TRAIN_COMMAND, "model/weights/<preset>_log.jsonl, _train_config.json", None, note), "",
-            *_table(["checkpoint", "k, L", "best step", "steps run", "minutes to best", "images",
+    note = ("Validation: whole images of each run's held-out scenes (`images`: their count; the sets differ "
+            "between runs); minutes: optimisation time of the last run to its best step.")
+    return [caption(TRAIN_COMMAND, "experiments/training/NAME/log.jsonl, train_config.json", None, note), "",
+            *_table(["checkpoint", "network", "best step", "steps run", "minutes to best", "images",
                      "val PSNR dB"], rows)]
 
 
 def validation(results: Results) -> list[str]:
     """The default model's best validation per spp next to the noisy input and OIDN."""
-    best = max((r for r in results.log("fast") if r["type"] == "val"), key=lambda r: r["psnr"])
+    best = max((r for r in results.log("flat-s-allspp") if r["type"] == "val"), key=lambda r: r["psnr"])
     rows = [[spp, *(_f(e["psnr"][w]) for w in ("ours", "noisy", "oidn")),
              *(_f(e["relmse"][w], 4) for w in ("ours", "noisy", "oidn"))] for spp, e in best["per_spp"].items()]
-    note = f"`fast` at its best step ({best['step']}); PSNR dB tonemapped / relMSE; OIDN colour-only."
-    return [caption(TRAIN_COMMAND, "model/weights/fast_log.jsonl", None, note), "",
+    note = (f"`flat-s-allspp` (the flat network every entry runs on clean renders) at its best step "
+            f"({best['step']}); PSNR dB tonemapped / relMSE; OIDN colour-only.")
+    return [caption(TRAIN_COMMAND, "experiments/training/flat-s-allspp/log.jsonl", None, note), "",
             *_table(["spp", "ours PSNR", "noisy PSNR", "OIDN PSNR", "ours relMSE", "noisy relMSE",
                      "OIDN relMSE"], rows, right=0)]
 
@@ -492,8 +560,8 @@ def denoise_tile_memory(results: Results) -> list[str]:
 
 
 TABLES: dict[str, Callable[[Results], list[str]]] = {
-    f.__name__: f for f in (scoreboard, scoreboard_scenes, noise_guard, noise_guard_settings, energy, ensemble, inference,
-                            science, multiscale_presets, roofline, budget, presets, validation, val_scenes, trend, ablations,
+    f.__name__: f for f in (models, strip_caption, unknown_spp, image_noise, denoise_process, scoreboard, scoreboard_scenes, noise_guard, noise_guard_settings, energy, ensemble, inference,
+                            multiscale_presets, roofline, budget, presets, validation, val_scenes, trend, ablations,
                             train_throughput, scaleout, extremes, render_memory, denoise_memory, denoise_tile_memory)}
 
 

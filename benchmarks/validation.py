@@ -26,8 +26,7 @@ from model.checkpoint import load_model
 from training.dataset import ValImage, load_val_images, read_manifest
 from training.train import DATASET_ID_STRIDE
 from training.validate import Validator
-from denoise.denoiser import DEFAULT_MODEL, resolve_model
-from denoise.ensemble import spp_range
+from model.registry import registry, split_member
 
 
 def val_images(folders: list[Path], max_scenes: int | None, noise: bool) -> list[ValImage]:
@@ -109,7 +108,7 @@ def model_specs(entries: tuple[str, ...]) -> dict[str, Path]:
     specs = {}
     for entry in entries:
         name, _, spec = entry.partition("=") if "=" in entry else (entry, "=", entry)
-        specs[name] = resolve_model(spec)
+        specs[name] = registry().member(spec).path
     return specs
 
 
@@ -117,10 +116,11 @@ def build_parser() -> OneLineParser:
     p = OneLineParser(prog="python -m benchmarks.validation", description=__doc__.splitlines()[0])
     p.add_argument("--data", type=Path, action="append", required=True,
                    help="dataset folder (repeatable): its 'val' scenes are scored")
-    members = tuple(dict.fromkeys(spp_range(m)[0] for m in DEFAULT_MODEL))  # each once, on every spp
+    default = registry().entries[registry().default].members
+    members = tuple(dict.fromkeys(split_member(m)[0] for m in default.split("+")))  # each once, on every spp
     p.add_argument("--models", type=name_list, default=members,
-                   help="comma-separated presets, checkpoints or NAME=CHECKPOINT, each scored alone "
-                        f"(default: the default ensemble's members, {','.join(members)})")
+                   help="comma-separated registry checkpoints, files or NAME=CHECKPOINT, each scored alone "
+                        f"(default: the default entry's checkpoints, {','.join(members)})")
     p.add_argument("--max-scenes", type=positive_int, help="only scenes with index below this")
     p.add_argument("--no-oidn", action="store_true", help="skip the OIDN baseline")
     p.add_argument("--out", type=Path, default=RESULTS)

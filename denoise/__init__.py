@@ -10,3 +10,6 @@ where its noise does not explain the change) -> ``energy`` (local means matched 
 ``oidn`` runs Intel Open Image Denoise beside it. Uses :mod:`model` (networks, checkpoints,
 registry) and :mod:`imaging`.
 """
+from denoise.denoiser import DenoiseResult, Denoiser
+
+__all__ = ["DenoiseResult", "Denoiser"]

@@ -237,7 +237,7 @@ def denoise_image(model: nn.Module, color: np.ndarray, aux: Aux = None,
     bound of the passes over the whole image (exposure, the skip test, copying skipped parts);
     the result does not depend on it either. ``flips``: average the network over 1, 2 or 4
     mirrored copies of each window (:func:`flip_average`; more time, a little more accuracy,
-    docs/speed.md). ``exposure``: :func:`image_exposure` of ``color`` when the caller has it
+    docs/experiments.md). ``exposure``: :func:`image_exposure` of ``color`` when the caller has it
     (several models on one image), else computed here. The model runs in eval mode; its previous
     mode is restored.
     """

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import functools
 import time
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,88 +23,24 @@ from imaging.errors import DenoiserError
 from imaging.hashing import file_sha256
 from denoise.tiling import core_for_budget, cores_for_budget
 from denoise.energy import EnergySettings, correct_in_place
-from denoise.ensemble import SEPARATOR, combine_in_place, range_suffix, split_spec, spp_range
+from denoise.ensemble import combine_in_place
+from denoise.image_noise import NoiseStats, noise_stats
 from denoise.noise_guard import DEFAULT_STRENGTH, guard_in_place, strength_for
+from model.registry import SEPARATOR, Choice, Selection, range_suffix, registry
 
 if TYPE_CHECKING:
     from rendering.render import RenderResult
 
-WEIGHTS_DIR = Path(__file__).resolve().parents[1] / "model" / "weights"
-# The model when none is named: an ensemble of shipped checkpoints, two networks at any known spp
-# (fast-lowspp + u-balanced-k5-lowspp up to 8 spp, fast + u-balanced-k5-lowspp at 9-16, fast + u-high
-# above); fast, the first, alone where the spp is unknown (docs/scoreboard.md, "The default"). `fast` is
-# two members: limited to 9-16 spp it computes in bfloat16 under `auto` (denoise/precision.py), above in
-# float32. u-balanced-k5-lowspp (a U-Net with a predicted filter, docs/multiscale.md) took u-high-lowspp's
-# place on 2026-12-05: level with it in the pair at 1-16 spp with 75.6k MACs/px against 108.9k (the time
-# saved within the inference benchmark's noise, docs/speed.md).
-DEFAULT_MODEL = ("fast:17-", "fast:9-16", "fast-lowspp:-8", "u-balanced-k5-lowspp", "u-high:17-")
 DEFAULT_MAX_MEMORY_MB = 1024
+ModelArg = str | Path | Sequence[str | Path] | None  # what ``Denoiser(...)`` and ``--model`` take
 
 
-def resolve_model(name: str | Path) -> Path:
-    """Checkpoint file of one ``--model`` member: a preset name (``fast``, ``balanced``, ``high``) ->
-    ``model/weights/<name>.ckpt``, the name of another shipped checkpoint (``u-high-lowspp``: a bare
-    name, no such file here) -> that file, anything else -> a path.
-
-    Raises :class:`DenoiserError` naming the file when a preset's weights are missing.
-    """
-    from model.config import PRESETS
-
-    path = WEIGHTS_DIR / f"{name}.ckpt"
-    if Path(name).exists() or Path(name).name != str(name):
-        return Path(name)
-    if str(name) in PRESETS and not path.exists():
-        raise DenoiserError(f"{path}: no weights for model preset '{name}' yet (train them, or pass "
-                            "a checkpoint file)")
-    return path if path.exists() else Path(name)
-
-
-def resolve_members(spec: str | Path | Sequence[str | Path] | None) -> list[tuple[Path, int, int]]:
-    """Every member of a ``--model`` value (:func:`ensemble_members`) as (checkpoint file, LO, HI):
-    the spp range it is limited to (``MODEL:LO-HI``, :func:`denoise.ensemble.spp_range`; 0: no
-    limit). Raises :class:`DenoiserError` for a bad range, or naming a missing file of the default."""
-    members = []
-    for member in ensemble_members(spec):
-        name, lo, hi = member, 0, 0
-        if not Path(member).exists():
-            try:
-                name, lo, hi = spp_range(str(member))
-            except ValueError as exc:
-                raise DenoiserError(str(exc)) from None
-        path = resolve_model(name)
-        if spec is None and not path.is_file():
-            raise DenoiserError(f"{path}: default weights missing; pass --model PATH (a checkpoint "
-                                "written by `train`)")
-        members.append((path, lo, hi))
-    return members
-
-
-def shipped_members(spec: str, weights: Path = WEIGHTS_DIR) -> list[str]:
-    """The members of ``spec``, shipped checkpoints by name (``fast+u-high:17-``), as the paths of
-    their files in ``weights``, each member's spp range kept (``.../u-high.ckpt:17-``)."""
-    paths = []
-    for member in map(str, ensemble_members(spec)):
-        model, lo, hi = spp_range(member)
-        paths.append(f"{weights / model}.ckpt{range_suffix(lo, hi)}")
-    return paths
-
-
-def ensemble_members(spec: str | Path | Sequence[str | Path] | None) -> list[str | Path]:
-    """The models of a ``--model`` value: None -> :data:`DEFAULT_MODEL`'s; ``A+B[+...]``
-    (:mod:`denoise.ensemble`) names several, unless it is an existing file's path; a list or tuple
-    names its items; anything else is one. Raises :class:`DenoiserError` for an empty member."""
-    if spec is None:
-        return list(DEFAULT_MODEL)
-    if isinstance(spec, (list, tuple)):
-        if not spec or not all(str(m).strip() for m in spec):
-            raise DenoiserError(f"model ensemble {list(map(str, spec))!r}: expected models, no empty member")
-        return list(spec)
-    if SEPARATOR not in str(spec) or Path(spec).exists():
-        return [spec]
-    try:
-        return list(split_spec(str(spec)))
-    except ValueError as exc:
-        raise DenoiserError(str(exc)) from None
+def select(model: ModelArg) -> Selection:
+    """The :class:`model.registry.Selection` of a ``--model`` value (None: the registry's default;
+    a list or tuple: its items are the members)."""
+    if isinstance(model, (list, tuple)):
+        return registry().select_list([str(m) for m in model])
+    return registry().select(None if model is None else str(model))
 
 
 @dataclass
@@ -122,9 +59,11 @@ class Network:
     dtype: Any
     margin: int
     limit: tuple[int, int] = (0, 0)
+    given: str = ""  # the name it was given by: a registry checkpoint, an earlier name or a path
 
     @classmethod
-    def load(cls, path: Path, optimize: bool, precision: str, limit: tuple[int, int] = (0, 0)) -> Network:
+    def load(cls, path: Path, optimize: bool, precision: str, limit: tuple[int, int] = (0, 0),
+             given: str = "") -> Network:
         import torch
 
         from model.architectures import receptive_radius
@@ -135,7 +74,8 @@ class Network:
 
         model, config, meta = load_model(path)
         model.eval()
-        member = cls(path, model, config, meta, model, torch.float32, receptive_radius(config), limit)
+        member = cls(path, model, config, meta, model, torch.float32, receptive_radius(config), limit,
+                     given or str(path))
         if optimize:
             member.dtype = compute_dtype(precision, config.multiscale, max_spp=member.max_spp)
             member.net = prepare_for_inference(model, member.dtype)
@@ -162,13 +102,18 @@ class Network:
 
     @property
     def label(self) -> str:
-        """Its file's stem, with the range its spec limits it to (``u-high:17-``)."""
+        """Its file's stem, with the range its spec limits it to (``unet-l-allspp:17-``)."""
         return self.path.stem + range_suffix(*self.limit)
 
     @property
     def spec(self) -> str:
-        """Its file's path, with the range its spec limits it to: what loads it again as it is."""
-        return f"{self.path}{range_suffix(*self.limit)}"
+        """The name it was given by, with the range its spec limits it to: what loads it again."""
+        return f"{self.given}{range_suffix(*self.limit)}"
+
+    @property
+    def meta_filter(self) -> str:
+        """The pixel filter of its training renders, as its checkpoint records it (box when absent)."""
+        return str((self.meta.get("data_config") or {}).get("filter") or "box")
 
     def covers(self, spp: int | None) -> bool:
         """True if it runs on renders of ``spp`` samples per pixel: always for a model trained on every
@@ -192,6 +137,9 @@ class DenoiseResult:
     energy_factor: float | None = None  # mean factor of the energy correction (None: not applied)
     network: np.ndarray | None = None  # the network's output before the guard (``keep_network``)
     models: tuple[str, ...] = ()  # the checkpoints' stems that ran (an ensemble: :meth:`Denoiser.active`)
+    choice: str = ""  # the registry entry or spec that ran (``auto``: the entry it chose)
+    notes: tuple[str, ...] = ()  # what the caller should know: an unknown spp, filtered noise
+    noise: NoiseStats | None = None  # what the image tells of its own noise (:mod:`denoise.image_noise`)
 
     def energy_record(self) -> dict[str, float] | None:
         """The energy correction's entry of metrics.json and of ``denoise``'s report (None: off)."""
@@ -217,13 +165,15 @@ def count_invalid(rgb: np.ndarray, rows: int | None = None, workers: int = 1) ->
 
 
 class Denoiser:
-    """A trained model ready to denoise HxWx3 linear radiance on the CPU.
+    """The shipped models, or any checkpoint, ready to denoise HxWx3 linear radiance on the CPU.
 
-    ``checkpoint``: a file written by ``train`` or a preset name (:func:`resolve_model`; default:
-    :data:`DEFAULT_MODEL`); ``A+B[+...]`` or a list of them an ensemble: every model denoises
-    the image and :mod:`denoise.ensemble` combines their outputs (weighted by their estimated
-    error where a variance is given, else their mean) before the guard. ``path``, ``model``,
-    ``config``, ``meta``, ``net`` and ``dtype`` are the first model's; ``members`` holds them all.
+    ``model``: a registry name (``fast``, ``balanced``, ``high``, ``auto``: :mod:`model.registry`;
+    None: the registry's default), a checkpoint file written by ``train``, or an expert spec
+    ``A+B[+...]`` (or a list of its members): every network that runs on a render denoises it and
+    :mod:`denoise.ensemble` combines their outputs (weighted by their estimated error where a
+    variance is given, else their mean) before the guard. Which networks run depends on the
+    render's spp (:meth:`active`). ``path``, ``model``, ``config``, ``meta``, ``net`` and ``dtype``
+    are the first network's; ``members`` holds every network loaded, each once.
     ``max_memory_mb`` bounds the scratch memory of :meth:`denoise_array` as OIDN's
     ``maxMemoryMB`` does: the memory it uses beyond the input and output images (the output,
     the guard's weight map and, asked for, the network's output; an ensemble also holds each
@@ -242,12 +192,12 @@ class Denoiser:
     ``precision``: the float format of the folded network (:mod:`denoise.precision`: ``auto`` is
     bfloat16 for a multi-scale network on a CPU with native bfloat16, else float32; the training
     module is always float32). ``flips``: average the network over 1, 2 or 4 mirrored copies of
-    each tile (:func:`denoise.chain.flip_average`): 2x or 4x the network's time for ~0.1 or ~0.2 dB
-    (docs/speed.md). ``energy``: match the output's local means to the render's where they differ by
-    more than its noise, after the guard (:mod:`denoise.energy`; None: off).
+    each tile (:func:`denoise.chain.flip_average`): 2x or 4x the network's time for ~0.1 or ~0.2 dB.
+    ``energy``: match the output's local means to the render's where they differ by more than its
+    noise, after the guard (:mod:`denoise.energy`; None: off).
     """
 
-    def __init__(self, checkpoint: str | Path | Sequence[str | Path] | None = None,
+    def __init__(self, model: ModelArg = None,
                  max_memory_mb: float = DEFAULT_MAX_MEMORY_MB, threads: int | None = None,
                  optimize: bool = True, skip_below: float | None = None, precision: str = "auto",
                  flips: int = 1, energy: EnergySettings | None = EnergySettings()) -> None:
@@ -263,13 +213,17 @@ class Denoiser:
             raise DenoiserError(str(exc)) from None
         if not 0 < max_memory_mb < float("inf"):  # also refuses NaN
             raise DenoiserError(f"max memory must be positive and finite, got {max_memory_mb} MB")
-        members = resolve_members(checkpoint)  # every member's file known before any load
+        self.selection = select(model)  # every member's file known before any load
         if threads:
             torch.set_num_threads(int(threads))
         fix_mmap_threshold()
         use_huge_pages()  # before the first large tensor: the tiles' temporaries fault per 2 MiB
         self.optimize = optimize
-        self.members = [Network.load(path, optimize, precision, (lo, hi)) for path, lo, hi in members]
+        # a member's own float format (``NAME@bfloat16`` in an entry) applies unless one was asked for
+        self._networks = {m: Network.load(m.path, optimize, m.precision if m.precision and precision == "auto"
+                                          else precision, (m.lo, m.hi), m.given)
+                          for m in self.selection.members}
+        self.members = list(self._networks.values())
         for member in self.members:
             if member.max_spp and member.min_spp > member.max_spp:
                 raise DenoiserError(f"{member.label}: the range leaves out every spp {member.path.name} "
@@ -286,15 +240,24 @@ class Denoiser:
 
     @property
     def name(self) -> str:
-        """The checkpoint's file name; an ensemble's joined by ``+``, each with the spp range its
-        spec limits it to (``fast.ckpt:17-+fast.ckpt:9-16+...``: a file named twice reads apart)."""
-        return SEPARATOR.join(m.path.name + range_suffix(*m.limit) for m in self.members)
+        """What ``--model`` accepts back: the registry name (``high``), else each member as it was
+        given (a registry checkpoint, an earlier name or a path) with its spp range, joined by ``+``."""
+        if self.registered:
+            return self.selection.name
+        return SEPARATOR.join(m.spec for m in self.selection.choices[0].by_spp)
+
+    @property
+    def registered(self) -> bool:
+        """True for a registry name (an entry or ``auto``), False for a file or an expert spec."""
+        return self.selection.auto or self.selection.name in registry().entries
 
     @property
     def label(self) -> str:
-        """The model's short name: its file's stem (``fast``), an ensemble's joined with their spp
-        limits (``fast+u-high-lowspp+u-high:17-``)."""
-        return SEPARATOR.join(m.label for m in self.members)
+        """The short name: the registry name, else each member's file stem with its spp range
+        (``unet-m-k5-lowspp:-16+unet-l-allspp:17-``)."""
+        if self.registered:
+            return self.selection.name
+        return SEPARATOR.join(self._networks[m].label for m in self.selection.choices[0].by_spp)
 
     @property
     def precision(self) -> str:
@@ -313,16 +276,32 @@ class Denoiser:
         """True when a model consumes albedo and normals (the render must provide them)."""
         return any(m.config.aux_inputs for m in self.members)
 
-    def active(self, spp: int | None) -> list[Network]:
-        """The members that denoise a render of ``spp`` samples per pixel (None: unknown): those
-        meant for renders of that many spp (:meth:`Network.covers`; with the spp unknown, those
-        trained on every spp and not limited), else the first member alone: the spec's fallback."""
-        return [m for m in self.members if m.covers(spp)] or [self.members[0]]
+    def choice(self, spp: int | None) -> Choice:
+        """The entry or spec that denoises a render of ``spp`` samples per pixel (None: unknown):
+        the one named, or for ``auto`` the entry :meth:`model.registry.Registry.auto_entry` picks."""
+        choices = self.selection.choices
+        if self.selection.auto:
+            name = registry().auto_entry(spp)
+            return next(c for c in choices if c.name == name)
+        return choices[0]
+
+    def active(self, spp: int | None, level: float = float("nan")) -> list[Network]:
+        """The networks that denoise a render of ``spp`` samples per pixel (None: unknown), from
+        :meth:`choice`: with the spp known, its members meant for renders of that many spp
+        (:meth:`Network.covers`), else its first member alone; with the spp unknown, the entry's
+        own choice for an image of that noise ``level`` (:mod:`denoise.image_noise`; NaN: a flat
+        image), or for a spec those trained on every spp and not limited, else its first member."""
+        choice = self.choice(spp)
+        unknown = choice.for_unknown_spp(level) if spp is None else None
+        if unknown:
+            return [self._networks[m] for m in unknown]
+        networks = [self._networks[m] for m in choice.by_spp]
+        return [n for n in networks if n.covers(spp)] or [networks[0]]
 
     def ensemble_record(self) -> dict[str, Any]:
-        """For an ensemble, what a run's record adds beside the first model's config:
+        """For several networks, what a run's record adds beside the first network's config:
         ``{"members": [{"path", "sha256", "step", "precision", "min_spp", "max_spp", "config"}...]}``;
-        ``{}`` for one model."""
+        ``{}`` for one network."""
         if len(self.members) == 1:
             return {}
         return {"members": [{"path": str(m.path), "sha256": m.sha256, "step": m.meta.get("step"),
@@ -365,17 +344,20 @@ class Denoiser:
     def denoise_array(self, rgb: np.ndarray, albedo: np.ndarray | None = None,
                       normals: np.ndarray | None = None, variance: np.ndarray | None = None,
                       strength: float = DEFAULT_STRENGTH, keep_network: bool = False,
-                      spp: int | None = None) -> DenoiseResult:
+                      spp: int | None = None, pixel_filter: str | None = None) -> DenoiseResult:
         """Denoise HxWx3 linear radiance (any float dtype) with :func:`denoise.chain.denoise_image`.
 
         ``variance``: HxWx3 variance of ``rgb``'s Monte Carlo estimate (a render made of two
         halves, :func:`rendering.render.render_loaded`); given, the output is blended with the
         render where the render's noise does not explain the change (:mod:`denoise.noise_guard`).
         ``keep_network``: also return the network's output before that blend (``network``).
-        ``spp``: the render's samples per pixel, where known: an ensemble runs only the members
-        trained on such renders (:meth:`active`; unknown: the members trained on every spp). The
-        output's local means are then matched to the render's (``energy``, :mod:`denoise.energy`).
-        None of the inputs is changed or copied whole.
+        ``spp``: the render's samples per pixel, where known: only the networks meant for such
+        renders run (:meth:`active`; unknown: the entry's choice for that case, named in the
+        result's ``notes``). The output's local means are then matched to the render's (``energy``,
+        :mod:`denoise.energy`). The result's ``noise`` says what the image tells of its own noise
+        (:mod:`denoise.image_noise`); noise spread over neighbouring pixels by a pixel filter other
+        than the box the shipped models were trained on is named in ``notes`` (``pixel_filter``: the
+        render's filter where it is known, e.g. ``"box"``). None of the inputs is changed or copied whole.
         """
         import torch
 
@@ -408,7 +390,10 @@ class Denoiser:
                                  variance=variance, skip_below=self.skip_below, max_bytes=self.max_bytes,
                                  flips=self.flips, exposure=exposure)
 
-        members = self.active(spp)
+        noise = noise_stats(rgb)
+        members = self.active(spp, noise.level)
+        choice = self.choice(spp).name
+        notes = self.notes(spp, choice, members, noise, pixel_filter)
         out = run(members[0])
         if len(members) > 1:  # each further output is one more image beside ``out``
             combine_in_place(rgb, [out, *(run(m) for m in members[1:])], variance, self.max_bytes)
@@ -425,24 +410,53 @@ class Denoiser:
             factor = correct_in_place(rgb, out, self.max_bytes, exposure, self.energy, workers)
         return DenoiseResult(out, nonfinite, negative, time.perf_counter() - start, count[0], weight,
                              None if weights is None else weights[:, :, 0], factor, network,
-                             tuple(m.path.stem for m in members))
+                             tuple(m.path.stem for m in members), choice, notes, noise)
+
+    def notes(self, spp: int | None, choice: str, members: Sequence[Network], noise: NoiseStats,
+              pixel_filter: str | None = None) -> tuple[str, ...]:
+        """What a caller should be told of one call: the spp unknown (and what ran instead of the
+        full path); a render whose pixel filter (``pixel_filter``; None: unknown, then judged from
+        the image's ``noise``) is not the one the networks were trained on."""
+        notes = []
+        if spp is None and (self.registered or len(self.choice(None).by_spp) > 1):
+            ran = SEPARATOR.join(m.label for m in members)
+            notes.append(f"spp unknown: ran {ran} ({choice}'s choice for an image of unknown spp and noise "
+                         f"level {noise.level:.3f}); give the render's spp (--spp N, or spp= in Python) for "
+                         "the networks meant for it")
+        trained = sorted({m.meta_filter for m in members})
+        if pixel_filter is not None:
+            if trained != [pixel_filter]:
+                notes.append(f"the render's pixel filter is {pixel_filter}; the networks were trained on "
+                             f"{'/'.join(trained)}-filtered renders: expect less denoising")
+        elif noise.filtered and trained == ["box"]:
+            notes.append(f"the noise looks spread over neighbouring pixels (Nyquist ratio {noise.ratio:.2f}; "
+                         "independent pixels give about 1): a pixel filter other than a box? The networks "
+                         "were trained on box-filtered renders: expect less denoising (render with "
+                         "<rfilter type=\"box\"/>, or train for your filter)")
+        return tuple(notes)
 
     def denoise_render(self, render: RenderResult, keep_network: bool = False) -> DenoiseResult:
         """Denoise a render of :mod:`rendering.render` with what it carries: its AOVs and, for a
         render made in two halves, its variance (the model's noise input, if it has one) and the
         noise guard at the strength for its spp. ``keep_network`` as in :meth:`denoise_array`."""
         return self.denoise_array(render.rgb, render.aovs.get("albedo"), render.aovs.get("sh_normal"),
-                                  render.variance, strength_for(render.spp), keep_network, render.spp)
+                                  render.variance, strength_for(render.spp), keep_network, render.spp,
+                                  render.pixel_filter)
 
-    def __call__(self, noisy: Any, albedo: Any = None, normals: Any = None) -> Any:
+    def __call__(self, noisy: Any, albedo: Any = None, normals: Any = None, spp: int | None = None) -> Any:
         """Denoise a numpy array, torch tensor, ``mi.TensorXf`` or ``mi.Bitmap`` (HxWx3, or HxWx4
-        with alpha kept); returns the same kind of object."""
+        with alpha kept) of ``spp`` samples per pixel (None: unknown); returns the same kind of
+        object. What the caller should know (an unknown spp: what ran instead; filtered noise) is
+        given as a :class:`UserWarning`."""
         kind = type(noisy).__module__.split(".")[0]
         data = np.array(noisy.detach().cpu().numpy() if kind == "torch" else noisy, dtype=np.float32)
         if data.ndim != 3 or data.shape[2] not in (3, 4):
             raise DenoiserError(f"expected HxWx3 or HxWx4 input, got shape {data.shape}")
         aux = [None if a is None else np.array(a, dtype=np.float32)[..., :3] for a in (albedo, normals)]
-        out = self.denoise_array(data[..., :3], *aux).image
+        result = self.denoise_array(data[..., :3], *aux, spp=spp)
+        for note in result.notes:
+            warnings.warn(note, stacklevel=2)
+        out = result.image
         if data.shape[2] == 4:
             out = np.concatenate([out, data[..., 3:]], axis=2)
         if kind == "torch":

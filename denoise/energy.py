@@ -15,14 +15,14 @@ variance of ``a``: the window's pixel variance over its pixel count, the pixel v
 the render itself, each block's sample variance. That is the noise plus the signal's own variation
 within 8 px, an over-estimate of the noise, so the test errs towards leaving the output alone; it
 needs no second render (a 1-spp render, a file from elsewhere), and measured as good as the
-variance of the render's two halves where those exist (docs/noise-guard.md). Where the difference
+variance of the render's two halves where those exist (docs/design.md). Where the difference
 is within the render's own spread the output is left alone; where it is several standard errors
 off, matched. Values are clamped at ``clamp`` (radiance after the network's exposure scale,
 :func:`denoise.chain.exposure_scale`) before anything is summed: one firefly of 1000 would otherwise
 make a whole window's mean.
 
 ``benchmarks/energy.py`` measured the settings on our held-out scenes (1-16 spp) and scores them
-on ../shared/eval-scenes (docs/noise-guard.md, "Energy").
+on ../shared/eval-scenes (docs/evaluate.md, benchmarks/energy.py).
 """
 from __future__ import annotations
 

@@ -1,8 +1,8 @@
 """Combine several denoisers' outputs of one render, each pixel weighted by its estimated error.
 
 Two networks of different shapes make different errors: measured on our held-out scenes and on
-../shared/eval-scenes, the flat ``fast`` is the better one from 32 spp up (pixel-scale detail),
-the multi-scale ``u-high`` from 1 to 16 spp (context), and each is better in some places of every
+../shared/eval-scenes, the flat ``flat-s-allspp`` is the better one from 32 spp up (pixel-scale detail),
+the multi-scale ``unet-l-allspp`` from 1 to 16 spp (context), and each is better in some places of every
 image. Their plain mean gains at a few spp and loses from 64 spp up, where one of them is clearly
 better locally. The render's two halves tell which: with ``y_k`` a denoiser's output, ``x`` the
 render and ``V`` the window mean of the halves' variance estimate (:mod:`denoise.noise_guard`),
@@ -22,7 +22,6 @@ black: 0.8-1.0 dB lower after the guard), where their squares keep it out. Windo
 """
 from __future__ import annotations
 
-import re
 from collections.abc import Sequence
 
 import numpy as np
@@ -35,8 +34,6 @@ from denoise.noise_guard import channel_sum, clean_render
 DEFAULT_RADIUS = 3  # window 7x7 (benchmarks/ensemble.py)
 DEFAULT_LAMBDA = 0.3  # T_k + lam * V (benchmarks/ensemble.py)
 DEFAULT_POWER = 2.0  # weights (1 / (T_k + lam * V))^power (benchmarks/ensemble.py, the converged regime)
-SEPARATOR = "+"  # ``--model fast+u-high``
-_SPP_RANGE = re.compile(r"^(?P<model>.+):(?P<lo>\d*)-(?P<hi>\d*)$")  # ``u-high:17-``
 
 
 def combine_weights(noisy: np.ndarray, outputs: Sequence[np.ndarray], variance: np.ndarray,
@@ -158,30 +155,3 @@ def combine_in_place(noisy: np.ndarray, outputs: Sequence[np.ndarray], variance:
                           radius, out=np.empty((height, width, k), np.float32))
     for rows in row_blocks(height, width, COMBINE_BYTES_PER_PIXEL, max_bytes):
         first[rows] = weighted_sum([o[rows] for o in outputs], weights[rows])
-
-
-def split_spec(spec: str) -> list[str]:
-    """The members of an ensemble spec ``A+B[+C...]``; raises ValueError for an empty member."""
-    parts = [p.strip() for p in spec.split(SEPARATOR)]
-    if len(parts) < 2 or not all(parts):
-        raise ValueError(f"model ensemble {spec!r}: expected MODEL+MODEL[+...] with no empty member")
-    return parts
-
-
-def spp_range(member: str) -> tuple[str, int, int]:
-    """An ensemble member ``MODEL:LO-HI`` -> (MODEL, LO, HI): it runs only on renders of LO to HI
-    spp (either end may be left out: ``u-high:17-``; 0: no limit); a member without a range ->
-    (member, 0, 0). Raises ValueError for a range with neither end or with LO > HI."""
-    match = _SPP_RANGE.match(member)
-    if match is None:
-        return member, 0, 0
-    lo, hi = int(match["lo"] or 0), int(match["hi"] or 0)
-    if not (lo or hi) or (hi and lo > hi):
-        raise ValueError(f"model ensemble member {member!r}: expected MODEL:LO-HI spp with LO <= HI "
-                         "(one end may be left out)")
-    return match["model"], lo, hi
-
-
-def range_suffix(lo: int, hi: int) -> str:
-    """The ``:LO-HI`` that :func:`spp_range` reads (an end of 0 left out); ``""`` for no limit."""
-    return f":{lo or ''}-{hi or ''}" if lo or hi else ""

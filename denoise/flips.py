@@ -1,7 +1,7 @@
 """Test-time flips: which mirrored copies of its input a network's output is averaged over.
 
 ``flips`` = 1 (the network as it is), 2 (and its left-right mirror) or 4 (and the up-down and the
-doubly mirrored copies). Measured on the eval scenes (docs/speed.md): 2 flips buy 0.10-0.14 dB, 4
+doubly mirrored copies). Measured on the eval scenes (docs/experiments.md): 2 flips buy 0.10-0.14 dB, 4
 flips 0.20-0.24 dB, for 2x and 4x the network's time. :func:`denoise.chain.flip_average` computes
 it; this module only names the choices (the CLIs read them without importing torch).
 """

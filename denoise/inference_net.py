@@ -21,7 +21,7 @@ What changes against the training module (eval mode), and why it is exact up to 
   flat buffer allocated once per forward pass (:func:`scratch_view`) instead of a fresh tensor per
   layer: a fresh tensor of more than a megabyte is a fresh mapping (:mod:`denoise.allocator`), whose
   every page faults on first touch. With the one-sided clamp of :class:`_ClampConv1x1`, measured
-  on 2 cores: u-fast's network alone at 1080p in bfloat16, 1.22 -> 0.90 s (docs/speed.md).
+  on 2 cores: u-fast's network alone at 1080p in bfloat16, 1.22 -> 0.90 s (docs/experiments.md).
 * **Optionally bfloat16** (``dtype``, :mod:`denoise.precision`): weights and activations; the input
   is built and the residual added in float32.
 * **The input written into one NHWC buffer** (:func:`padded_input`): RGB, its gradients and the

@@ -6,21 +6,13 @@ network's input (transfer-space RGB, gradients, noise channels) is built in floa
 output converted back to float32 before the residual is added, so the noisy image itself is not
 rounded. On CPUs with native bfloat16 arithmetic (AMX or AVX512-BF16) this halves the network's
 time; elsewhere oneDNN emulates it and it is slower than float32. ``auto`` picks bfloat16 only
-where the CPU has it natively and for the multi-scale networks: on the eval scenes (``python -m
-benchmarks.evaluate --precisions float32,bfloat16``) the noise-input u-balanced checkpoint lost nothing
-(31.59 / 34.90 / 39.14 against 31.59 / 34.91 / 39.15 dB at 4 / 16 / 128 spp) but the flat
-``fast`` lost 0.5 dB at 128 spp (40.86 against 41.36; its full-resolution features carry small
-corrections that bfloat16 rounds away). That loss is the clean renders': a flat net that only runs
-on renders of at most :data:`FLAT_BF16_MAX_SPP` spp (an ensemble member limited so, ``MODEL:-16``,
-or a checkpoint trained on them) computes in bfloat16 under ``auto`` too, where the render's own
-noise is far above the rounding. The default with its flat members so (``fast-lowspp:-8``,
-``fast:9-16``) scored 29.11 / 31.05 / 32.95 / 34.83 dB at 1 / 2 / 4 / 8 spp against 29.10 / 31.04 /
-32.94 / 34.83 in float32, at 0.57-0.61x the denoise time (``python -m benchmarks.evaluate
---precisions auto,bfloat16 --spp 1,2,4,8,16``, 2026-12-04), and 35.84 / 36.58 at 12 / 16 spp against
-35.88 / 36.63 at 0.55x (2026-12-05, the same at ``--spp 12,16``; worst scene -0.26 dB, FLIP and
-relMSE equal): 0.05 dB is about 2% more samples at 16 spp, which at these renders' cost is a tenth of
-the denoise time saved, so at equal time the bfloat16 default is ahead. Above 16 spp the flat nets
-stay in float32. Its speed: ``benchmarks/inference.py`` (docs/speed.md).
+where the CPU has it natively, for the multi-scale networks, and for a flat network only where it
+runs on renders of at most :data:`FLAT_BF16_MAX_SPP` spp (a member limited so, ``NAME:-16``, or a
+checkpoint trained on them): the flat networks' full-resolution features carry small corrections that
+bfloat16 rounds away, which costs clean renders a few tenths of a dB but is far below a noisy
+render's own noise (measured on the eval scenes: docs/experiments.md, "Inference speed and
+precision"). A registry entry may fix a member's format (``NAME@bfloat16``). Its speed:
+``benchmarks/inference.py``.
 """
 from __future__ import annotations
 

@@ -164,7 +164,7 @@ PRESETS: dict[str, ModelConfig] = {
     "high": ModelConfig(layers=30, growth=8, init_features=16, transfer="pu"),
     "paper": ModelConfig(layers=20, growth=12, init_features=24, transfer="pu"),
     # the multi-scale family (model.unet): 2 dense layers per block, 5 resolutions (1/2 .. 1/32); RGB
-    # only: the noise input (--noise-input) cost 1.4 dB at equal CPU time (docs/multiscale.md, science)
+    # only: the noise input (--noise-input) cost 1.4 dB at equal CPU time (docs/experiments.md, science)
     "u-fast": ModelConfig(arch="dense_unet", levels=4, layers=2, growth=8, init_features=24, transfer="pu"),
     "u-balanced": ModelConfig(arch="dense_unet", levels=4, layers=2, growth=12, init_features=32, transfer="pu"),
     "u-high": ModelConfig(arch="dense_unet", levels=4, layers=3, growth=16, init_features=48, transfer="pu"),

@@ -12,9 +12,9 @@ after and are not counted.
   seconds per call and per pixel, applied to the real image's tiles (they overlap by the margin).
 * **Choice** (:func:`plan_budget`): per candidate, the largest spp whose predicted total fits. With
   trade curves (``tradeoff.json`` of a ``tradeoff`` run) the candidate whose curve predicts the
-  lowest error at its spp wins. Without curves the rule is: the best preset (``PRESET_ORDER``, by
-  measured quality) whose denoising takes at most a third of the time left, else the fastest that
-  fits — samples keep at least two thirds of the time.
+  lowest error at its spp wins. Without curves the rule is: the best registry entry
+  (:func:`quality_order`, by measured quality) whose denoising takes at most a third of the time
+  left, else the fastest that fits — samples keep at least two thirds of the time.
 """
 from __future__ import annotations
 
@@ -31,24 +31,14 @@ import numpy as np
 from imaging.errors import DenoiserError
 from rendering.render import render_loaded
 from denoise.tiling import Core, plan_tiles
-from denoise.denoiser import DEFAULT_MODEL, WEIGHTS_DIR, Denoiser, ensemble_members, resolve_members, shipped_members
-from denoise.ensemble import SEPARATOR
+from denoise.denoiser import Denoiser
+from model.registry import AUTO, CARD_SPP, registry
 from pipeline.evaluation import RenderSettings, make_denoiser
 from pipeline.pareto import error_at_spp, metric_error
 
 DENOISE_SHARE = 1.0 / 3.0
 PROBE_SHARE = 0.05
 MAX_SPP = 1 << 16
-# Best quality first, as measured on ../shared/eval-scenes (docs/scoreboard.md): the default
-# ensemble (denoise/denoiser.py's DEFAULT_MODEL: two networks at any known spp, `fast+u-high` above
-# 16 spp) is above `fast` at every spp; the same without its flat members up to 16 spp (FASTER_DEFAULT:
-# the U-Net u-balanced-k5-lowspp alone there) 0.12-0.42 dB under it at 1-16 spp for 0.4x its time
-# (docs/multiscale.md), above the noisy-render specialists of 2026-12-04 alone; the shipped `fast` is level
-# with `balanced` at 16 spp and ahead at 128 spp, `high` last — and `fast` is the cheapest of the flat presets.
-FASTER_DEFAULT = SEPARATOR.join(m for m in DEFAULT_MODEL if m not in ("fast:9-16", "fast-lowspp:-8"))
-PRESET_ORDER = (SEPARATOR.join(DEFAULT_MODEL), FASTER_DEFAULT, "fast", "balanced", "high")
-DEFAULT_CURVES = WEIGHTS_DIR / "tradeoff.json"
-
 Curves = dict[str, tuple[list[float], list[float]]]  # denoiser -> (spp, error)
 
 
@@ -131,14 +121,28 @@ def plan_budget(budget_s: float, spent_s: float, render: RenderCost, denoise_s: 
                       best["denoise_s"], rule, options, asdict(render))
 
 
+def quality_order() -> tuple[str, ...]:
+    """The registry's entries, best first: by mean measured PSNR over the cards' spp, entries
+    without figures after them in the manifest's reverse order (it lists the quickest first)."""
+    entries = list(registry().entries.values())[::-1]
+
+    def key(entry: Any) -> float:
+        psnr = [entry.psnr(s) for s in CARD_SPP]
+        return -sum(psnr) / len(psnr) if all(p is not None for p in psnr) else math.inf
+
+    return tuple(e.name for e in sorted(entries, key=key))
+
+
 def _rule_without_curves(fitting: list[dict[str, Any]], left: float) -> tuple[dict[str, Any], str]:
+    order = quality_order()
+
     def rank(o: dict[str, Any]) -> int:
-        return PRESET_ORDER.index(o["model"]) if o["model"] in PRESET_ORDER else len(PRESET_ORDER)
+        return order.index(o["model"]) if o["model"] in order else len(order)
 
     cheap = [o for o in fitting if o["denoise_s"] <= DENOISE_SHARE * left]
     if cheap:
         return min(cheap, key=lambda o: (rank(o), o["denoise_s"])), \
-            "no trade curves: best preset whose denoising takes at most 1/3 of the time left"
+            "no trade curves: best model whose denoising takes at most 1/3 of the time left"
     return min(fitting, key=lambda o: o["denoise_s"]), "no trade curves: fastest model that fits"
 
 
@@ -216,20 +220,12 @@ def denoise_seconds(denoiser: Denoiser, height: int, width: int, side: int = 128
 
 
 def budget_candidates(model: str | None, settings: RenderSettings) -> dict[str, Denoiser]:
-    """Models to choose from: every entry of :data:`PRESET_ORDER` whose weights are shipped (an
-    ensemble's: all its members') for ``auto``, else the one given."""
-    if model != "auto":
+    """Models to choose from: for ``auto`` every registry entry (best first, :func:`quality_order`),
+    else the one given."""
+    if model != AUTO:
         den = make_denoiser(model, settings)
         return {den.label: den}
-    found = {}
-    for name in PRESET_ORDER:
-        members = shipped_members(name, WEIGHTS_DIR)
-        if all(path.exists() for path, _, _ in resolve_members(members)):
-            found[name] = members
-    if not found:
-        raise BudgetError(f"--model auto: no preset weights in {WEIGHTS_DIR} "
-                          f"({', '.join(n + '.ckpt' for n in PRESET_ORDER if len(ensemble_members(n)) == 1)})")
-    return {name: make_denoiser(members, settings) for name, members in found.items()}
+    return {name: make_denoiser(name, settings) for name in quality_order()}
 
 
 def plan_run(budget_s: float, started: float, scene: Any, seed: int, aovs: Sequence[str],
@@ -239,8 +235,7 @@ def plan_run(budget_s: float, started: float, scene: Any, seed: int, aovs: Seque
     ``time.perf_counter()`` at which the budget began; ``halves`` as in :func:`probe_render`."""
     if not budget_s > 0:
         raise BudgetError(f"time budget must be positive, got {budget_s}")
-    path = Path(curves_path) if curves_path else (DEFAULT_CURVES if DEFAULT_CURVES.exists() else None)
-    curves = load_curves(path) if path and len(candidates) > 1 else None
+    curves = load_curves(curves_path) if curves_path and len(candidates) > 1 else None
     log("probing render cost")
     render = probe_render(scene, seed, aovs, budget_s, halves)
     width, height = (int(v) for v in scene.sensors()[0].film().crop_size())

@@ -4,7 +4,6 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -13,21 +12,59 @@ from rendering.render import DEFAULT_MAX_MEMORY_MB
 from console.usage import OneLineParser, int_list, name_list, name_value, positive_float, positive_int
 from denoise.flips import FLIPS
 from denoise.precision import PRECISIONS
-from denoise.denoiser import DEFAULT_MODEL
-from denoise.ensemble import SEPARATOR
+from model.registry import AUTO, AUTO_TOLERANCE_DB, registry
 from pipeline.evaluation import RenderSettings
 
 
 PRECISION_HELP = ("float format of the network: bfloat16 halves its time on CPUs with native bfloat16 "
-                  "(AMX, AVX512-BF16) at a measured cost in quality (docs/speed.md); auto: bfloat16 "
+                  "(AMX, AVX512-BF16) at a measured cost in quality (docs/experiments.md); auto: bfloat16 "
                   "for the multi-scale nets where the CPU has it natively, else float32")
 FLIPS_HELP = ("average the network over 1, 2 or 4 mirrored copies of the image: 2x or 4x the "
-              "network's time for about 0.1 or 0.2 dB (docs/speed.md)")
+              "network's time for about 0.1 or 0.2 dB (docs/experiments.md)")
 ENERGY_HELP = ("leave the output's local means as the network made them (default: matched to the render's "
-               "where they differ by more than its noise; docs/noise-guard.md)")
+               "where they differ by more than its noise; docs/design.md)")
 SKIP_HELP = ("leave the 64-px cells whose noise (transfer-space standard deviation from the halves) is "
              "below NOISE out of the network; they keep the render, as the noise guard would "
              "(benchmarks/skip.py measures time and change; default: the network everywhere)")
+
+
+def models_epilog() -> str:
+    """The registry's names, one line each, for the end of ``--help``."""
+    reg = registry()
+    lines = ["models (--model NAME; --list-models prints their cards):"]
+    lines += [f"  {reg.entries[n].help_line()}{' (default)' if n == reg.default else ''}" for n in reg.entries]
+    lines.append(f"  {AUTO}: per render the cheapest of these within {AUTO_TOLERANCE_DB:g} dB of the best at "
+                 "its spp (measured); with --time-budget the one that fits")
+    lines.append("  or a checkpoint file written by `train`, or an expert spec A+B[:LO-HI] (docs/denoise.md)")
+    return "\n".join(lines)
+
+
+class ListModels(argparse.Action):
+    """``--list-models``: print every registry entry's card and exit (no other argument needed)."""
+
+    def __init__(self, option_strings: list[str], dest: str, **kwargs: Any) -> None:
+        super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS,
+                         help="print the shipped models' cards (what runs, figures, training) and exit")
+
+    def __call__(self, parser: argparse.ArgumentParser, *args: Any) -> None:
+        reg = registry()
+        print("\n\n".join(reg.card(name) for name in reg.entries))
+        parser.exit()
+
+
+def add_model_argument(p: argparse.ArgumentParser) -> None:
+    """``--model`` and ``--list-models``, with the registry's names in the help's epilog."""
+    p.add_argument("--model", metavar="NAME", help=f"a registry name ({', '.join(registry().names)}; "
+                   f"default {registry().default}), a checkpoint file or an expert spec: see the list below")
+    p.add_argument("--list-models", action=ListModels)
+    p.epilog = models_epilog()
+    p.formatter_class = argparse.RawDescriptionHelpFormatter
+
+
+def print_notes(notes: list[str], prog: str) -> None:
+    """What the run's notes say (an unknown spp, filtered noise), on stderr, one line each."""
+    for note in notes:
+        print(f"{prog}: note: {note}", file=sys.stderr)
 
 
 def add_render_arguments(p: argparse.ArgumentParser, reference_required: bool, guard_help: str) -> None:
@@ -59,17 +96,6 @@ def render_settings(args: argparse.Namespace) -> RenderSettings:
                           reference_spp=args.reference_spp)
 
 
-def _run_and_summarise(parser: OneLineParser, action: Callable[[], Any],
-                       summary: Callable[[Any], list[str]], outputs: str, quiet: bool) -> int:
-    """Run a command's library call (:meth:`OneLineParser.attempt`); unless ``quiet``, print the
-    summary of its result and where its outputs are. Returns the exit code."""
-    result, code = parser.attempt(action)
-    if code == 0 and not quiet:
-        print("\n".join(summary(result)))
-        print(f"outputs: {outputs}")
-    return code
-
-
 def render_parser() -> OneLineParser:
     p = OneLineParser(prog="render-and-denoise",
                       description="Render a Mitsuba scene, denoise it, report metrics.")
@@ -77,8 +103,7 @@ def render_parser() -> OneLineParser:
         "render in one piece and keep the denoiser's output as it is (default: render in two halves "
         "and keep the render where its noise does not explain the change)"))
     p.add_argument("--spp", type=positive_int, help="samples per pixel (128)")
-    p.add_argument("--model", help=f"checkpoint or preset name (default: {SEPARATOR.join(DEFAULT_MODEL)}); "
-                   "A+B: an ensemble (e.g. fast+u-high); 'auto' with --time-budget")
+    add_model_argument(p)
     compare = p.add_mutually_exclusive_group()
     compare.add_argument("--compare", choices=["oidn"], action="append", default=[],
                          help="denoise with OIDN colour-only too, and fail without pyoidn (default: "
@@ -89,6 +114,7 @@ def render_parser() -> OneLineParser:
                    help="choose spp (and, with --model auto, the preset) to finish within SECONDS")
     p.add_argument("--curves", metavar="TRADEOFF_JSON",
                    help="trade curves (a tradeoff run's tradeoff.json) for --model auto")
+    p.add_argument("--json", action="store_true", help="print the run's record (metrics.json) instead of the table")
     p.add_argument("--quiet", action="store_true", help="no summary on stdout")
     return p
 
@@ -97,8 +123,8 @@ def main(argv: list[str] | None = None) -> int:
     """``render-and-denoise scene.xml [...]``."""
     parser = render_parser()
     args = parser.parse_args(argv)
-    if args.time_budget is None and (args.model == "auto" or args.curves):
-        parser.error("--model auto and --curves need --time-budget")
+    if args.time_budget is None and args.curves:
+        parser.error("--curves needs --time-budget")
     if args.time_budget is not None and args.spp is not None:
         parser.error("--spp and --time-budget exclude each other (the budget chooses the spp)")
     from pipeline.run import RunConfig, run, summary_lines
@@ -107,9 +133,17 @@ def main(argv: list[str] | None = None) -> int:
                     model=args.model,
                     compare_oidn=False if args.no_compare else ("oidn" in args.compare or None),
                     time_budget=args.time_budget, curves=args.curves)
-    log = (lambda s: None) if args.quiet else (lambda s: print(f"... {s}", file=sys.stderr))
-    return _run_and_summarise(parser, lambda: run(cfg, log), summary_lines,
-                              f"{cfg.out}/ (report.html, metrics.json, comparison.png)", args.quiet)
+    log = (lambda s: None) if args.quiet or args.json else (lambda s: print(f"... {s}", file=sys.stderr))
+    metrics, code = parser.attempt(lambda: run(cfg, log))
+    if code:
+        return code
+    print_notes(metrics.get("notes", []), parser.prog)
+    if args.json:
+        print(json.dumps(metrics, indent=1))
+    elif not args.quiet:
+        print("\n".join(summary_lines(metrics)))
+        print(f"report: {Path(cfg.out) / 'report.html'} (metrics.json, comparison.png beside it)")
+    return 0
 
 
 def denoise_parser() -> OneLineParser:
@@ -132,14 +166,15 @@ def denoise_parser() -> OneLineParser:
                         "(default: the file's spp)")
     p.add_argument("--no-noise-guard", action="store_true",
                    help="ignore the variance: keep the denoiser's output as it is")
-    p.add_argument("--model", help=f"checkpoint or preset name (default: {SEPARATOR.join(DEFAULT_MODEL)}); "
-                   "A+B: an ensemble (e.g. fast+u-high)")
+    add_model_argument(p)
     p.add_argument("--reference", help="reference image: print metrics")
     p.add_argument("--max-memory-mb", type=float, default=DEFAULT_MAX_MEMORY_MB, help="tile memory bound")
     p.add_argument("--skip-below", type=positive_float, metavar="NOISE", help=SKIP_HELP)
     p.add_argument("--precision", choices=PRECISIONS, default="auto", help=PRECISION_HELP)
     p.add_argument("--flips", type=int, choices=tuple(FLIPS), default=1, help=FLIPS_HELP)
     p.add_argument("--no-energy", action="store_true", help=ENERGY_HELP)
+    p.add_argument("--json", action="store_true", help="print what was done as JSON instead of the table")
+    p.add_argument("--quiet", action="store_true", help="print nothing on success")
     return p
 
 
@@ -161,10 +196,16 @@ def denoise_main(argv: list[str] | None = None) -> int:
                             noise_guard=not args.no_noise_guard, max_memory_mb=args.max_memory_mb,
                             skip_below=args.skip_below, precision=args.precision, flips=args.flips,
                             energy=not args.no_energy)
+    from pipeline.denoise_file import denoise_summary
+
     result, code = parser.attempt(lambda: denoise_file(cfg))
     if code:
         return code
-    print(json.dumps(result, indent=1))
+    print_notes(result.get("notes", []), parser.prog)
+    if args.json:
+        print(json.dumps(result, indent=1))
+    elif not args.quiet:
+        print("\n".join(denoise_summary(result)))
     return 0
 
 
@@ -175,11 +216,17 @@ def tradeoff_parser() -> OneLineParser:
         "as render-and-denoise --no-noise-guard: one-piece renders, unguarded models"))
     p.add_argument("--spp", type=int_list, default=(1, 2, 4, 8, 16, 32, 64, 128, 256, 512, 1024),
                    help="comma-separated spp levels (1,2,4,...,1024)")
-    p.add_argument("--models", type=name_list, default=None,
-                   help="comma-separated presets (model/weights/<name>.ckpt), checkpoint paths or "
-                        "ensembles A+B (fast,balanced,high,u-high,fast+u-high,fast+u-high-lowspp)")
-    p.add_argument("--compare", choices=["oidn"], action="append", default=[],
-                   help="also measure OIDN colour-only (needs pyoidn)")
+    p.add_argument("--models", "--model", type=name_list, default=None, metavar="NAMES",
+                   help="comma-separated registry names, checkpoint files or expert specs (default: "
+                        "the registry's entries, listed below)")
+    p.add_argument("--list-models", action=ListModels)
+    p.epilog = models_epilog()
+    p.formatter_class = argparse.RawDescriptionHelpFormatter
+    compare = p.add_mutually_exclusive_group()
+    compare.add_argument("--compare", choices=["oidn"], action="append", default=[],
+                         help="measure OIDN colour-only too, and fail without pyoidn (default: whenever "
+                         "pyoidn is installed)")
+    compare.add_argument("--no-compare", action="store_true", help="do not run OIDN")
     p.add_argument("--repeat", type=positive_int, default=3, help="timing repeats, median kept (3)")
     p.add_argument("--metric", choices=["relmse", "psnr", "flip"], default="relmse",
                    help="error of the plot, frontier and saving table (relmse)")
@@ -194,14 +241,19 @@ def tradeoff_main(argv: list[str] | None = None) -> int:
     parser = tradeoff_parser()
     args = parser.parse_args(argv)
     from pipeline.tradeoff import DEFAULT_MODELS, TradeoffConfig, run_tradeoff
-    from pipeline.tradeoff_report import saving_table
+    from pipeline.tradeoff_report import recommendation_line, saving_table
 
     models = args.models if args.models is not None else DEFAULT_MODELS
     cfg = TradeoffConfig(render=render_settings(args), out=args.out or f"{Path(args.scene).stem}-tradeoff",
-                         spp=list(args.spp), models=list(models), compare_oidn="oidn" in args.compare,
+                         spp=list(args.spp), models=list(models),
+                         compare_oidn=False if args.no_compare else ("oidn" in args.compare or None),
                          repeat=args.repeat, metric=args.metric)
-    return _run_and_summarise(parser, lambda: run_tradeoff(cfg, tqdm_bars("step", enabled=not args.quiet)),
-                              saving_table, f"{cfg.out}/ (tradeoff.json, tradeoff.csv, tradeoff.png)", args.quiet)
+    result, code = parser.attempt(lambda: run_tradeoff(cfg, tqdm_bars("step", enabled=not args.quiet)))
+    if code == 0 and not args.quiet:
+        print("\n".join(saving_table(result)))
+        print(recommendation_line(result))
+        print(f"report: {Path(cfg.out) / 'report.html'} (tradeoff.json, tradeoff.csv, tradeoff.png beside it)")
+    return code
 
 
 if __name__ == "__main__":

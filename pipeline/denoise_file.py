@@ -30,6 +30,7 @@ from rendering.render import half_variance
 from denoise.denoiser import Denoiser
 from denoise.energy import settings_if
 from denoise.noise_guard import DEFAULT_STRENGTH, strength_for
+from pipeline.evaluation import quality_lines
 
 HALVES_BYTES_PER_PIXEL = 128  # combine_halves: float64 temporaries of the mean and the variance
 
@@ -171,7 +172,9 @@ def denoise_file(cfg: DenoiseFileConfig) -> dict[str, Any]:
     out: dict[str, Any] = {
         "input": cfg.inputs[0] if len(cfg.inputs) == 1 else list(cfg.inputs), "output": cfg.output,
         "layer": image.layer.name if image.layer else None, "layout": layout,
-        "denoise_s": result.seconds, "model": denoiser.name, "models_run": list(result.models),
+        "denoise_s": result.seconds, "model": denoiser.name, "ran": result.choice,
+        "models_run": list(result.models), "spp": spp or None, "notes": list(result.notes),
+        "noise": {"level": result.noise.level, "nyquist_ratio": result.noise.ratio} if result.noise else None,
         "precision": denoiser.precision,
         "flips": denoiser.flips, "nonfinite_values": result.nonfinite,
         "negative_values": result.negative,
@@ -182,4 +185,23 @@ def denoise_file(cfg: DenoiseFileConfig) -> dict[str, Any]:
     if ref is not None:
         out["quality"] = {"noisy": all_metrics(image.rgb, ref), "denoised": all_metrics(result.image, ref)}
     return json_safe(out)
+
+
+def denoise_summary(record: dict[str, Any]) -> list[str]:
+    """``denoise``'s table of one run's record (:func:`denoise_file`)."""
+    inputs = record["input"] if isinstance(record["input"], str) else " + ".join(record["input"])
+    spp = f"{record['spp']} spp" if record.get("spp") else "spp unknown"
+    lines = [f"{inputs} -> {record['output']} ({record['layout']})",
+             f"model {record['model']} ({spp}): ran {'+'.join(record['models_run'])} in {record['precision']}, "
+             f"{record['denoise_s']:.2f} s"]
+    guard = record.get("noise_guard")
+    if guard:
+        lines.append(f"noise guard: mean weight of the denoiser's output {guard['mean_weight']:.3f} (1: unchanged)")
+    if record.get("energy"):
+        lines.append(f"energy correction: mean factor {record['energy']['mean_factor']:.3f} (1: unchanged)")
+    if record.get("nonfinite_values") or record.get("negative_values"):
+        lines.append(f"replaced by 0: {record['nonfinite_values']} non-finite, {record['negative_values']} negative values")
+    if record.get("quality"):
+        lines += quality_lines(record["quality"])
+    return lines
 

@@ -182,3 +182,11 @@ def evaluate(scene: Any, spp: int, settings: RenderSettings, reference: np.ndarr
     scores.update({name: score(output.image, reference) for name, output in outputs.items()})
     return Evaluation(render, outputs, scores)
 
+
+def quality_lines(quality: Mapping[str, Mapping[str, Any]]) -> list[str]:
+    """The console table of :func:`score`'s full figures per image (``noisy``, ``denoised``...)."""
+    lines = [f"{'':10}{'PSNR dB':>9}{'SSIM':>8}{'relMSE':>10}{'FLIP':>8}"]
+    for name, m in quality.items():
+        psnr = "inf" if m["psnr"] is None else f"{m['psnr']:.2f}"
+        lines.append(f"{name:10}{psnr:>9}{m['ssim']:>8.4f}{m['relmse']:>10.5f}{m['flip']:>8.4f}")
+    return lines

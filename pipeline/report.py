@@ -204,6 +204,8 @@ def run_page(metrics: dict[str, Any], images: dict[str, np.ndarray],
         rows.append(ViewerRow("noise guard weight", page.scalar(guard_map), kind="weight"))
     page.add_set(ViewerSet(Path(str(metrics["scene"])).stem, rows, ids.get("reference"),
                            "" if reference is not None else "no reference: no error maps"))
+    if metrics.get("notes"):
+        page.add_section("Notes", "".join(f"<p class='note'>{html.escape(n)}</p>" for n in metrics["notes"]))
     _quality_section(page, metrics)
     _run_section(page, metrics)
     return page

@@ -26,8 +26,8 @@ from imaging.peak_rss import PeakRSS
 from rendering.render import RenderResult
 from pipeline.budget import BudgetPlan, budget_candidates, plan_run
 from denoise.denoiser import DenoiseResult, Denoiser
-from pipeline.evaluation import (RenderSettings, aovs_for, check_reference, denoise_output, make_denoiser, read_reference,
-                                 render_input, render_reference, score)
+from pipeline.evaluation import (RenderSettings, aovs_for, check_reference, denoise_output, make_denoiser,
+                                 quality_lines, read_reference, render_input, render_reference, score)
 from denoise.noise_guard import DEFAULT_PIVOT_SPP, DEFAULT_RADIUS, strength_for
 from denoise.oidn import oidn_available
 from pipeline.report import write_comparison, write_previews, write_report
@@ -198,9 +198,12 @@ def _metrics(run: _Run) -> dict[str, Any]:
     metrics: dict[str, Any] = {
         "scene": str(cfg.scene), "spp": run.spp, "resolution": [w, h], "seed": cfg.seed,
         "model": {"name": denoiser.name, "sha256": denoiser.sha256, "precision": denoiser.precision,
-                  "flips": denoiser.flips, "config": denoiser.config.to_dict(), "models_run": list(result.models),
-                  **denoiser.ensemble_record()},
-        "mitsuba": metadata.version("mitsuba"), "variant": noisy.variant, "timings": run.timings,
+                  "flips": denoiser.flips, "config": denoiser.config.to_dict(), "ran": result.choice,
+                  "models_run": list(result.models), **denoiser.ensemble_record()},
+        "notes": list(result.notes),
+        "noise": {"level": result.noise.level, "nyquist_ratio": result.noise.ratio} if result.noise else None,
+        "mitsuba": metadata.version("mitsuba"), "variant": noisy.variant, "pixel_filter": noisy.pixel_filter,
+        "timings": run.timings,
         "sanitized": {"render_nonfinite_pixels": noisy.nonfinite, "denoiser_nonfinite_values":
                       result.nonfinite, "denoiser_negative_values": result.negative},
         "oidn": run.oidn,
@@ -258,12 +261,8 @@ def summary_lines(metrics: dict[str, Any]) -> list[str]:
         lines.append(f"time budget {budget['budget_s']:g} s: chose {budget['model']} at {budget['spp']} spp "
                      f"({budget['rule']}); predicted {budget['predicted_s']:.2f} s, actual "
                      f"{budget['actual_s']:.2f} s")
-    quality = metrics.get("quality")
-    if quality:
-        lines.append(f"{'':10}{'PSNR dB':>9}{'SSIM':>8}{'relMSE':>10}{'FLIP':>8}")
-        for name, m in quality.items():
-            psnr = "inf" if m["psnr"] is None else f"{m['psnr']:.2f}"
-            lines.append(f"{name:10}{psnr:>9}{m['ssim']:>8.4f}{m['relmse']:>10.5f}{m['flip']:>8.4f}")
+    if metrics.get("quality"):
+        lines += quality_lines(metrics["quality"])
     else:
         lines.append(metrics["note"])
     return lines

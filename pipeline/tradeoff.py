@@ -20,17 +20,15 @@ from imaging.atomic_io import json_safe, write_json_atomic
 from imaging.errors import DenoiserError
 from console.progress import ProgressBar, ProgressFactory
 from rendering.render import RenderResult
-from model.config import PRESETS
-from denoise.denoiser import DEFAULT_MODEL, Denoiser, ensemble_members, resolve_members
-from denoise.ensemble import SEPARATOR
+from denoise.denoiser import Denoiser, select
+from denoise.oidn import oidn_available
+from model.registry import SEPARATOR, range_suffix, registry
 from pipeline.evaluation import (OIDN, Output, RenderSettings, aovs_for, check_reference, denoise_output, make_denoiser,
                                  read_reference, render_input, render_reference, score)
 from pipeline.pareto import ERROR_OF_METRIC, equal_quality, metric_error, pareto_front
 
 DEFAULT_SPP = (1, 2, 4, 8, 16, 32, 64, 128, 256, 512, 1024)
-# the flat presets, the fastest good multi-scale net, the ensemble fast+u-high and the default
-# (docs/scoreboard.md)
-DEFAULT_MODELS = ("fast", "balanced", "high", "u-high", "fast+u-high", SEPARATOR.join(DEFAULT_MODEL))
+DEFAULT_MODELS = ("fast", "balanced", "high")  # the registry's entries
 METRICS = ("psnr", "relmse", "flip")
 
 
@@ -38,7 +36,8 @@ METRICS = ("psnr", "relmse", "flip")
 class TradeoffConfig:
     """Settings of one ``tradeoff`` run (filled by the CLI, saved as config.json).
 
-    ``models``: preset names (weights in ``model/weights/<name>.ckpt``) or checkpoint paths.
+    ``models``: registry names (:mod:`model.registry`), checkpoint files or expert specs.
+    ``compare_oidn``: also measure OIDN colour-only (None: whenever pyoidn is installed).
     ``metric``: the error that the plot, the Pareto front and the printed saving table use.
     """
 
@@ -46,7 +45,7 @@ class TradeoffConfig:
     out: str
     spp: list[int] = field(default_factory=lambda: list(DEFAULT_SPP))
     models: list[str] = field(default_factory=lambda: list(DEFAULT_MODELS))
-    compare_oidn: bool = False
+    compare_oidn: bool | None = None
     repeat: int = 3
     metric: str = "relmse"
 
@@ -83,27 +82,21 @@ class Point:
         return metric_error(metric, getattr(self, metric))
 
 
-def model_labels(models: list[str]) -> dict[str, str | Path | list[str | Path]]:
-    """Label -> checkpoint for each ``--models`` entry (preset name, else file stem; made unique;
-    an ensemble ``A+B``: its members' labels joined by ``+``, the list of their paths; a member
-    limited to an spp range, ``u-high:17-``, keeps its spec as label and entry).
-
-    Raises :class:`DenoiserError` naming the file when a preset's weights or a file are missing.
-    """
-    labels: dict[str, str | Path | list[str | Path]] = {}
+def model_labels(models: list[str]) -> dict[str, str]:
+    """Label -> ``--model`` value for each ``--models`` entry: a registry name is its own label; a
+    file or spec is labelled by its members' file stems with their spp ranges (made unique).
+    Raises :class:`DenoiserError` for an unknown name or a missing file."""
+    labels: dict[str, str] = {}
     for name in models:
-        members = ensemble_members(name)  # A+B: an ensemble
-        resolved = resolve_members(name)  # (path, spp limits) of each
-        for path, _, _ in resolved:
-            if not path.is_file():
-                raise DenoiserError(f"{path}: checkpoint not found")
-        specs = [str(m) if lo or hi else p for m, (p, lo, hi) in zip(members, resolved)]  # limits kept
-        label = SEPARATOR.join(str(m) if m in PRESETS or lo or hi else p.stem
-                               for m, (p, lo, hi) in zip(members, resolved))
+        selection = select(name)
+        if selection.auto or selection.name in registry().entries:
+            label = selection.name
+        else:
+            label = SEPARATOR.join(m.path.stem + range_suffix(m.lo, m.hi) for m in selection.choices[0].by_spp)
         base, n = label, 2
         while label in labels or label in ("none", "oidn"):
             label, n = f"{base}-{n}", n + 1
-        labels[label] = specs[0] if len(specs) == 1 else specs
+        labels[label] = name
     return labels
 
 
@@ -135,7 +128,8 @@ def measure(cfg: TradeoffConfig, progress: ProgressFactory | None = None) -> dic
     reference = read_reference(settings)
     aovs = aovs_for(models.values())
     scene = settings.load(aovs)
-    denoisers: dict[str, Denoiser | None] = {**models, **({OIDN: None} if cfg.compare_oidn else {})}
+    oidn = oidn_available() if cfg.compare_oidn is None else cfg.compare_oidn
+    denoisers: dict[str, Denoiser | None] = {**models, **({OIDN: None} if oidn else {})}
     spps = sorted(cfg.spp)
     bar = progress(len(spps) * (1 + len(denoisers)) + 1) if progress else None
     _warm_up(scene, settings, aovs, denoisers)

@@ -113,6 +113,33 @@ def saving_table(result: dict[str, Any]) -> list[str]:
     return lines
 
 
+def recommendation(result: dict[str, Any]) -> dict[str, Any] | None:
+    """The one choice a run recommends: of the denoised points (ours and OIDN) on the Pareto front
+    of the run's metric, the one with the largest equal-quality saving (the render alone would take
+    the most times as long for that error); None when no denoised point is on the front."""
+    metric = result["metric"]
+    front = {tuple(p) for p in result["pareto"][metric]}
+    rows = [r for r in _equal_rows(result).values()
+            if (r["denoiser"], r["spp"]) in front and r["saving"] is not None and math.isfinite(r["saving"])]
+    if not rows:
+        return None
+    best = max(rows, key=lambda r: (r["saving"], -r["spp"]))
+    point = next(p for p in result["points"] if (p["denoiser"], p["spp"]) == (best["denoiser"], best["spp"]))
+    return {"denoiser": best["denoiser"], "spp": best["spp"], "total_s": point["total_s"], metric: point[metric],
+            "raw_spp": best["raw_spp"], "saving": best["saving"], "extrapolated": best["extrapolated"]}
+
+
+def recommendation_line(result: dict[str, Any]) -> str:
+    """:func:`recommendation` as one sentence."""
+    rec = recommendation(result)
+    if rec is None:
+        return "recommended: the raw render (no denoised point is on the Pareto front)"
+    metric = result["metric"]
+    raw = f"{'~' if rec['extrapolated'] else ''}{rec['raw_spp']:.0f}"
+    return (f"recommended: {rec['denoiser']} at {rec['spp']} spp ({rec['total_s']:.2f} s, {metric} "
+            f"{_num(rec[metric], '.4g')}): the render alone needs {raw} spp for that, {rec['saving']:.1f}x the time")
+
+
 def tradeoff_page(result: dict[str, Any], plot_png: bytes) -> Page:
     """The HTML report of a tradeoff run (the report viewer's page): the plot, the equal-quality
     table and every measured point (Pareto points marked, best value per column highlighted)."""
@@ -123,6 +150,7 @@ def tradeoff_page(result: dict[str, Any], plot_png: bytes) -> Page:
                 f"{w}x{h}; reference {ref.get('spp', '')} spp {ref.get('file') or ''}; "
                 f"Mitsuba {result.get('mitsuba', '')} ({result.get('variant', '')}); "
                 f"times are medians of repeated runs")
+    page.add_section("Recommended", f"<p>{recommendation_line(result)}</p>")
     page.add_section("Error against time", png_figure(plot_png, f"{ERROR_LABEL[metric]} against "
                                                       "render + denoise seconds, Pareto frontier dashed"))
     points = {(p["denoiser"], p["spp"]): p for p in result["points"]}

@@ -45,6 +45,7 @@ class RenderResult:
     variant: str = ""
     variance: np.ndarray | None = None  # HxWx3 variance of ``rgb``'s estimate (``halves`` renders)
     crops: int = 1  # film crops rendered one after the other (rendering.render_crops)
+    pixel_filter: str = "box"  # the film's reconstruction filter (rendering.scene_io forces a box)
 
 
 def _one_line(exc: BaseException) -> str:

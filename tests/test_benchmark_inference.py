@@ -1,34 +1,38 @@
-"""benchmarks/inference.py's model entries: presets, files, ensembles and the shipped default."""
+"""benchmarks/inference.py's model entries: registry names, presets with random weights, specs, spp."""
 from __future__ import annotations
 
 from pathlib import Path
 
 import numpy as np
 
-from benchmarks.inference import SPP, _checkpoint, _macs, denoiser_macs
-from denoise.denoiser import DEFAULT_MODEL, WEIGHTS_DIR, Denoiser, ensemble_members, shipped_members
-from denoise.ensemble import SEPARATOR
+from benchmarks.inference import _checkpoint, _macs, call, denoiser_macs, ratios
+from denoise.denoiser import Denoiser
+from model.config import PRESETS
+
+UNET = next(name for name, config in PRESETS.items() if config.multiscale)  # an architecture preset
 
 
-def test_default_is_the_shipped_ensemble_with_its_spp_ranges(tmp_path: Path) -> None:
-    spec = str(_checkpoint("default", tmp_path))
-    members = ensemble_members(spec)
-    assert members == shipped_members(SEPARATOR.join(DEFAULT_MODEL))
-    assert members[0] == f"{WEIGHTS_DIR / 'fast'}.ckpt:17-" and members[-1] == f"{WEIGHTS_DIR / 'u-high'}.ckpt:17-"
-    assert not list(tmp_path.iterdir())  # real weights: nothing written
+def test_registry_names_and_files_are_passed_on_presets_get_random_weights(tmp_path: Path) -> None:
+    assert _checkpoint("high", tmp_path) == "high" and not list(tmp_path.iterdir())  # real weights
+    path = _checkpoint(UNET, tmp_path)
+    assert path == str(tmp_path / f"{UNET}.ckpt") and Path(path).is_file()
+    den = Denoiser(f"{path}+{path}:-16")
+    out = den.denoise_array(np.ones((8, 8, 3), np.float32), spp=4)
+    assert out.models == (UNET, UNET)
 
 
-def test_a_preset_ensemble_gets_random_weights_and_keeps_a_range(tmp_path: Path) -> None:
-    spec = str(_checkpoint("fast+u-fast:-16", tmp_path))
-    assert ensemble_members(spec) == [str(tmp_path / "fast.ckpt"), f"{tmp_path / 'u-fast.ckpt'}:-16"]
-    den = Denoiser(spec)
-    out = den.denoise_array(np.ones((8, 8, 3), np.float32), spp=SPP)
-    assert out.models == ("fast", "u-fast")  # the benchmark's spp runs the low-spp member
+def test_macs_count_only_the_networks_that_run_at_the_spp(tmp_path: Path) -> None:
+    path = _checkpoint(UNET, tmp_path)
+    both = Denoiser(f"{path}+{path}:17-")
+    one = _macs(both.members[0].config)
+    assert denoiser_macs(both, 4) == one and denoiser_macs(both, 64) == 2 * one
 
 
-def test_an_ensembles_macs_count_only_the_members_that_run_at_the_benchmarks_spp(tmp_path: Path) -> None:
-    both = Denoiser(str(_checkpoint("fast+u-fast", tmp_path)))
-    fast_only = Denoiser(str(_checkpoint("fast+u-fast:17-", tmp_path)))
-    fast, u_fast = (_macs(m.config) for m in both.members)
-    assert denoiser_macs(both) == fast + u_fast
-    assert denoiser_macs(fast_only) == fast  # u-fast runs from 17 spp only, the benchmark calls at SPP
+def test_a_call_at_unknown_spp_has_no_variance_and_ratios_are_per_process_medians(tmp_path: Path) -> None:
+    den = Denoiser("fast")
+    img = np.full((16, 16, 3), 0.5, np.float32)
+    assert call(den, img, img * 0.01, "unknown").guard_weight is None
+    assert call(den, img, img * 0.01, 4).guard_weight is not None
+    sizes = {"8x8": {"oidn": {"process_s_per_mp": [1.0, 2.0, 4.0]},
+                     "fast|4": {"process_s_per_mp": [0.5, 1.0, 8.0]}}}
+    assert ratios(sizes) == {"8x8": {"fast": {"4": 0.5}}}

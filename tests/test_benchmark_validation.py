@@ -12,8 +12,6 @@ from model.architectures import build_model
 from model.checkpoint import save_checkpoint
 from model.config import ModelConfig
 from training.synthetic import write_synthetic_dataset
-from denoise.denoiser import DEFAULT_MODEL
-from denoise.ensemble import spp_range
 
 IDENTITY = ModelConfig(layers=2, growth=4, init_features=8, transfer="pu", output="residual")
 
@@ -82,8 +80,7 @@ def test_the_command_writes_json_and_table_and_fails_in_one_line(data: tuple[Pat
     assert len(err) == 1 and "manifest.jsonl: not found" in err[0]
 
 
-def test_the_default_models_are_the_shipped_default_members_without_their_ranges() -> None:
+def test_the_default_models_are_the_default_entrys_checkpoints() -> None:
     specs = model_specs(build_parser().parse_args(["--data", "d"]).models)
-    assert list(specs) == list(dict.fromkeys(spp_range(m)[0] for m in DEFAULT_MODEL))
-    assert list(specs) == ["fast", "fast-lowspp", "u-balanced-k5-lowspp", "u-high"]
+    assert list(specs) == ["flat-s-allspp", "flat-s-lowspp", "unet-m-k5-lowspp", "unet-l-allspp", "unet-m-k5-lowspp-b"]
     assert all(path.is_file() for path in specs.values()), specs

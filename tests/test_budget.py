@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from denoise.tiling import plan_tiles
+from model.registry import registry
 from pipeline import budget
 from pipeline.evaluation import RenderSettings
 from pipeline.budget import (BudgetError, RenderCost, budget_candidates, denoise_seconds, fit_spp,
@@ -43,7 +44,7 @@ def test_single_model_gets_the_largest_spp_that_fits() -> None:
     (2.6, "fast"),       # nothing within 1/3: the fastest that fits
 ])
 def test_auto_rule_without_curves(left: float, expected: str, monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(budget, "PRESET_ORDER", ("high", "balanced", "fast"))  # best first, here
+    monkeypatch.setattr(budget, "quality_order", lambda: ("high", "balanced", "fast"))  # best first, here
     plan = plan_budget(left, 0.0, RENDER, PRESETS)
     assert plan.model == expected
     assert plan.spp == fit_spp(left, RENDER, PRESETS[expected])
@@ -123,30 +124,17 @@ def test_denoise_seconds_scales_by_tile_windows(member_ranges: list[tuple[int, i
     assert window_pixels(300, 200, 64, 8) > 300 * 200  # overlapping windows cost extra
 
 
-def test_auto_candidates_are_the_presets_with_weights(tmp_path: Path,
-                                                      monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(budget, "WEIGHTS_DIR", tmp_path)
-    with pytest.raises(BudgetError, match="no preset weights in"):
-        budget_candidates("auto", RenderSettings(scene="unused.xml", max_memory_mb=64))
-    write_tiny_checkpoint(tmp_path / "fast.ckpt")
-    write_tiny_checkpoint(tmp_path / "high.ckpt", seed=1)
-    assert set(budget_candidates("auto", RenderSettings(scene="unused.xml", max_memory_mb=64))) == {"fast", "high"}
-    write_tiny_checkpoint(tmp_path / "u-high.ckpt", seed=2)
-    assert set(budget_candidates("auto", RenderSettings(scene="unused.xml", max_memory_mb=64))) == {"fast", "high"}
-    write_tiny_checkpoint(tmp_path / "u-balanced-k5-lowspp.ckpt", seed=3, max_spp=16)  # completes the faster one
+def test_auto_candidates_are_the_registry_entries_best_first() -> None:
+    """``--model auto`` under a budget chooses among the registry's entries, best measured quality
+    first (entries without figures by the manifest's order, the quickest last); any other model alone."""
+    order = budget.quality_order()
+    assert set(order) == set(registry().entries) and order[-1] == "fast"
     found = budget_candidates("auto", RenderSettings(scene="unused.xml", max_memory_mb=64))
-    assert budget.FASTER_DEFAULT == "fast:17-+u-balanced-k5-lowspp+u-high:17-"  # the default's U-Net alone to 16 spp
-    assert list(found) == [budget.FASTER_DEFAULT, "fast", "high"]
-    write_tiny_checkpoint(tmp_path / "fast-lowspp.ckpt", seed=4, max_spp=16)  # completes the default
-    found = budget_candidates("auto", RenderSettings(scene="unused.xml", max_memory_mb=64))
-    default = "fast:17-+fast:9-16+fast-lowspp:-8+u-balanced-k5-lowspp+u-high:17-"
-    assert list(found) == [default, budget.FASTER_DEFAULT, "fast", "high"]  # best quality first
-    assert [(m.path.name, m.min_spp, m.max_spp) for m in found[default].members] == [
-        ("fast.ckpt", 17, 0), ("fast.ckpt", 9, 16), ("fast-lowspp.ckpt", 0, 8), ("u-balanced-k5-lowspp.ckpt", 0, 16),
-        ("u-high.ckpt", 17, 0)]
+    assert list(found) == list(order) and all(found[name].name == name for name in order)
+    assert list(budget_candidates("balanced", RenderSettings(scene="unused.xml", max_memory_mb=64))) == ["balanced"]
 
 
-@pytest.mark.parametrize("args", [["--model", "auto"], ["--time-budget", "5", "--spp", "4"],
+@pytest.mark.parametrize("args", [["--time-budget", "5", "--spp", "4"],
                                   ["--time-budget", "0"], ["--curves", "x.json"]])
 def test_cli_budget_argument_errors_exit_2(args: list[str], capsys: pytest.CaptureFixture) -> None:
     with pytest.raises(SystemExit) as exc:

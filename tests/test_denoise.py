@@ -177,21 +177,30 @@ def test_bad_arguments_raise_clear_errors(tmp_path: Path, ckpt: Path) -> None:
         Denoiser(ckpt).denoise_array(np.zeros((4, 4), np.float32))
 
 
-def test_resolve_model_finds_shipped_checkpoints_by_name(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """A preset or another shipped checkpoint's bare name -> model/weights/NAME.ckpt; a file of that
-    name in the working folder, or any path, is taken as given; a preset without weights is an error."""
-    from denoise import denoiser
-    from denoise.denoiser import resolve_model
-    weights = tmp_path / "weights"
-    weights.mkdir()
-    monkeypatch.setattr(denoiser, "WEIGHTS_DIR", weights)
-    monkeypatch.chdir(tmp_path)
-    special = write_tiny_checkpoint(weights / "my-special.ckpt")
-    assert resolve_model("my-special") == special
-    assert Denoiser("my-special").path == special
-    assert resolve_model("elsewhere/my-special") == Path("elsewhere/my-special")
-    assert resolve_model("unknown") == Path("unknown")
-    (tmp_path / "my-special").write_bytes(b"")
-    assert resolve_model("my-special") == Path("my-special")  # a file here wins
-    with pytest.raises(DenoiserError, match="no weights for model preset 'fast'"):
-        resolve_model("fast")
+def test_the_denoiser_names_what_it_runs_so_that_the_name_loads_it_again(ckpt: Path) -> None:
+    """A registry name is printed as it is; a checkpoint file by its path; either loads the same again."""
+    for model in ("high", "fast", str(ckpt)):
+        den = Denoiser(model)
+        assert den.name == model and Denoiser(den.name).sha256 == den.sha256
+    assert Denoiser().name == "high"  # the registry's default
+    with pytest.raises(DenoiserError, match="registry name"):
+        Denoiser("fsat")
+
+
+def test_an_unknown_spp_and_filtered_noise_are_named(ckpt: Path) -> None:
+    """Without an spp the call says what ran instead (a Python warning from ``__call__``); noise
+    spread over neighbours (a [1, 2, 1] blur of white noise) is named unless the filter is known."""
+    rng = np.random.default_rng(4)
+    white = np.exp(rng.normal(-1.0, 0.3, (64, 64, 3))).astype(np.float32)
+    den = Denoiser("fast")
+    with pytest.warns(UserWarning, match="spp unknown: ran"):
+        den(white)
+    assert den.denoise_array(white, spp=4).notes == ()
+    k = np.array([0.25, 0.5, 0.25], np.float32)
+    blurred = sum(w * white[:, i:i + 62] for i, w in enumerate(k))
+    blurred = np.ascontiguousarray(sum(w * blurred[i:i + 62] for i, w in enumerate(k)))
+    notes = den.denoise_array(blurred, spp=4).notes
+    assert len(notes) == 1 and "spread over neighbouring pixels" in notes[0]
+    assert den.denoise_array(blurred, spp=4, pixel_filter="box").notes == ()
+    assert "the render's pixel filter is gaussian" in den.denoise_array(white, spp=4, pixel_filter="gaussian").notes[0]
+    assert Denoiser(ckpt).denoise_array(white).notes == ()  # one network trained on every spp: nothing to say

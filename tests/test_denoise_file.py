@@ -33,7 +33,7 @@ def denoiser(ckpt: Path) -> Denoiser:
 
 
 def run(capsys: pytest.CaptureFixture, *argv: str) -> dict:
-    assert denoise_main(list(argv)) == 0
+    assert denoise_main([*argv, "--json"]) == 0
     return json.loads(capsys.readouterr().out)
 
 

@@ -10,9 +10,10 @@ import pytest
 from imaging.errors import DenoiserError
 from imaging.exr import write_exr
 from pipeline.cli import denoise_main
-from denoise.denoiser import DEFAULT_MODEL, Denoiser, ensemble_members
-from denoise.ensemble import (COMBINE_BYTES_PER_PIXEL, combine, combine_in_place, combine_weights, range_suffix,
-                               split_spec, spp_range, weight_bytes_per_pixel, weighted_sum)
+from denoise.denoiser import Denoiser, select
+from denoise.ensemble import (COMBINE_BYTES_PER_PIXEL, combine, combine_in_place, combine_weights,
+                              weight_bytes_per_pixel, weighted_sum)
+from model.registry import range_suffix, split_range
 from denoise.noise_guard import clean_render
 from tests.test_denoise import write_tiny_checkpoint
 from tests.test_model_unet import TINY as TINY_UNET
@@ -100,9 +101,9 @@ def test_bad_arguments() -> None:
         combine_weights(noisy, [noisy[:4]], var)
     with pytest.raises(ValueError, match="lam"):
         combine_weights(noisy, [noisy], var, lam=-1)
-    with pytest.raises(ValueError, match="no empty member"):
-        split_spec("fast+")
-    assert split_spec("fast + u-high") == ["fast", "u-high"]
+    with pytest.raises(DenoiserError, match="no empty member"):
+        select("flat-s-allspp+")
+    assert [m.given for m in select("flat-s-allspp + unet-l-allspp").members] == ["flat-s-allspp", "unet-l-allspp"]
 
 
 @pytest.fixture(scope="module")
@@ -123,9 +124,10 @@ def test_ensemble_denoiser_combines_its_members_outputs(two_models: tuple[Path, 
         got = ens.denoise_array(noisy, variance=var, keep_network=True)
         np.testing.assert_allclose(got.network, expected, rtol=1e-4, atol=1e-5)
         assert got.image.shape == noisy.shape and np.isfinite(got.image).all()
-    assert ens.name == "flat.ckpt+unet.ckpt" and ens.label == "flat+unet" and len(ens.members) == 2
+    assert ens.name == f"{flat}+{unet}" and ens.label == "flat+unet" and len(ens.members) == 2
     limited = Denoiser(f"{flat}:9-16+{flat}:17-+{unet}")
-    assert limited.name == "flat.ckpt:9-16+flat.ckpt:17-+unet.ckpt" and limited.label == "flat:9-16+flat:17-+unet"
+    assert limited.name == f"{flat}:9-16+{flat}:17-+{unet}" and limited.label == "flat:9-16+flat:17-+unet"
+    assert Denoiser(limited.name).label == limited.label  # the name it prints loads it again
     assert ens.margin == max(m.margin for m in ens.members) and not ens.needs_aovs
     plain = ens.denoise_array(noisy).image  # no variance: the mean, no guard
     np.testing.assert_allclose(plain, combine(noisy, [Denoiser(p).denoise_array(noisy).image for p in two_models],
@@ -185,14 +187,18 @@ def test_an_ensemble_spec_limits_a_member_to_an_spp_range(tmp_path: Path, two_mo
     assert [(m.min_spp, m.max_spp) for m in ens.members] == [(0, 0), (17, 0), (4, 8)]
     assert ens.label == "flat+unet:17-+low:4-"
     assert [m.spec for m in ens.members] == [str(flat), f"{unet}:17-", f"{low}:4-"]  # loads them again as they are
-    assert [spp_range(f"m{range_suffix(lo, hi)}") for lo, hi in ((0, 0), (17, 0), (0, 16), (4, 8))] == [
+    assert [split_range(f"m{range_suffix(lo, hi)}") for lo, hi in ((0, 0), (17, 0), (0, 16), (4, 8))] == [
         ("m", 0, 0), ("m", 17, 0), ("m", 0, 16), ("m", 4, 8)]
     _, noisy, var = _case(15, 18, seed=7)
     for spp, ran in ((2, ("flat",)), (4, ("flat", "low")), (16, ("flat",)), (17, ("flat", "unet")), (None, ("flat",))):
         assert ens.denoise_array(noisy, variance=var, spp=spp).models == ran, spp
     assert Denoiser(f"{flat}+{unet}:-16").members[1].max_spp == 16
-    assert [spp_range(m) for m in DEFAULT_MODEL] == [("fast", 17, 0), ("fast", 9, 16), ("fast-lowspp", 0, 8),
-                                                      ("u-balanced-k5-lowspp", 0, 0), ("u-high", 17, 0)]
+    # a spec written before the registry names the same files by their earlier names
+    before = "fast:17-+fast:9-16+fast-lowspp:-8+u-balanced-k5-lowspp+u-high:17-"
+    assert [m.spec for m in select(before).members] == before.split("+")
+    assert [(m.path.stem, m.lo, m.hi) for m in select(before).members] == [
+        ("flat-s-allspp", 17, 0), ("flat-s-allspp", 9, 16), ("flat-s-lowspp", 0, 8), ("unet-m-k5-lowspp", 0, 0),
+        ("unet-l-allspp", 17, 0)]
     # where no member is meant for the spp (the spp unknown and every member limited), the first runs alone
     fallback = Denoiser([f"{flat}:9-", f"{low}:-4", f"{unet}:17-"])
     for spp, ran in ((2, ("low",)), (8, ("flat",)), (9, ("flat",)), (17, ("flat", "unet")), (None, ("flat",))):
@@ -210,9 +216,9 @@ def test_ensemble_specs(tmp_path: Path, two_models: tuple[Path, Path]) -> None:
     """A file whose name holds '+' is one model; a list names its members (a '+' in a path kept);
     an empty or missing member is a clear error."""
     plus = write_tiny_checkpoint(tmp_path / "a+b.ckpt")
-    assert ensemble_members(plus) == [plus] and ensemble_members(None) == list(DEFAULT_MODEL)
+    assert [m.path for m in select(plus).members] == [plus] and select(None).name == "high"
     assert len(Denoiser(plus).members) == 1
-    assert ensemble_members([plus, two_models[0]]) == [plus, two_models[0]]
+    assert [m.path for m in select([plus, two_models[0]]).members] == [plus, two_models[0]]
     assert [m.path for m in Denoiser([plus, two_models[1]]).members] == [plus, two_models[1]]
     for empty in ([], [plus, ""]):
         with pytest.raises(DenoiserError, match="no empty member"):
@@ -232,13 +238,13 @@ def test_denoise_cli_with_an_ensemble_and_halves(tmp_path: Path, two_models: tup
                   metadata={"spp": 8})
     spec = f"{two_models[0]}+{two_models[1]}"
     assert denoise_main(["--halves", str(tmp_path / "a.exr"), str(tmp_path / "b.exr"), str(tmp_path / "o.exr"),
-                         "--model", spec]) == 0
+                         "--model", spec, "--json"]) == 0
     printed = json.loads(capsys.readouterr().out)
-    assert (tmp_path / "o.exr").exists() and "flat.ckpt+unet.ckpt" in json.dumps(printed)
+    assert (tmp_path / "o.exr").exists() and printed["model"] == spec
     assert printed["models_run"] == ["flat", "unet"] and printed["noise_guard"]["spp"] == 16
     low = write_tiny_checkpoint(tmp_path / "low.ckpt", TINY_UNET, seed=3, max_spp=8)  # the halves make 16 spp
     assert denoise_main(["--halves", str(tmp_path / "a.exr"), str(tmp_path / "b.exr"), str(tmp_path / "o3.exr"),
-                         "--model", f"{two_models[0]}+{low}"]) == 0
+                         "--model", f"{two_models[0]}+{low}", "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["models_run"] == ["flat"]
     assert denoise_main([str(tmp_path / "a.exr"), str(tmp_path / "o2.exr"), "--model", spec + "+"]) == 1
     assert "no empty member" in capsys.readouterr().err

@@ -39,13 +39,13 @@ from training.step import NonFiniteGuard, train_step
 from training.synthetic import write_synthetic_dataset
 from model.transfer import HDR_MAX, get_transfer
 from pipeline.cli import denoise_main
-from denoise.denoiser import DEFAULT_MODEL, WEIGHTS_DIR, Denoiser
-from denoise.ensemble import spp_range
+from denoise.denoiser import Denoiser
+from model.registry import registry
 
 TINY = ModelConfig(layers=3, growth=4, init_features=8)
 RADIUS = receptive_radius(TINY)
 DEMO = Path(__file__).resolve().parents[1] / "scenes" / "examples" / "demo.xml"
-shipped = pytest.mark.skipif(not all((WEIGHTS_DIR / f"{spp_range(m)[0]}.ckpt").exists() for m in DEFAULT_MODEL),
+shipped = pytest.mark.skipif(not all((registry().folder / c.file).exists() for c in registry().checkpoints.values()),
                              reason="no shipped weights")
 
 # Radiance values at the edges: zero, tiny, fireflies, beyond the float16 maximum, invalid.

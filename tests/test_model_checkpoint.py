@@ -238,11 +238,13 @@ SHIPPED = sorted((Path(__file__).resolve().parents[1] / "model" / "weights").glo
 
 @pytest.mark.parametrize("path", SHIPPED, ids=[p.stem for p in SHIPPED])
 def test_shipped_checkpoints_load_and_carry_their_training_record(path: Path) -> None:
-    # Every shipped checkpoint rebuilds its model from the file alone, with finite weights, and has
-    # its run's log and training config beside it; one trained on low spp records its range.
+    # Every shipped checkpoint rebuilds its model from the file alone, with finite weights, and its
+    # run's log and training config are kept in experiments/training/NAME/; one trained on low spp
+    # records its range.
     model, config, meta = load_model(path)
     assert all(torch.isfinite(p).all() for p in model.parameters())
-    assert (path.parent / f"{path.stem}_log.jsonl").is_file()
-    train_config = json.loads((path.parent / f"{path.stem}_train_config.json").read_text())
+    record = path.parents[2] / "experiments" / "training" / path.stem
+    assert (record / "log.jsonl").is_file()
+    train_config = json.loads((record / "train_config.json").read_text())
     if path.stem.endswith("-lowspp"):
         assert meta["train_config"]["max_spp"] == train_config["max_spp"] == 16

@@ -49,7 +49,7 @@ def test_render_and_denoise_writes_everything(demo_run: Path, ckpt: Path) -> Non
     for row in metrics["quality"].values():
         for key in ("psnr", "ssim", "relmse", "smape", "flip", "hdr_flip"):
             assert np.isfinite(row[key]), key
-    assert metrics["model"]["name"] == "tiny.ckpt" and len(metrics["model"]["sha256"]) == 64
+    assert metrics["model"]["name"] == str(ckpt) and len(metrics["model"]["sha256"]) == 64
     assert metrics["model"]["precision"] == Denoiser(ckpt).precision  # auto: what this CPU gets
     assert metrics["model"]["flips"] == 1
     assert all(v >= 0 for v in metrics["timings"].values())
@@ -113,7 +113,7 @@ def test_denoise_command(tmp_path: Path, demo_run: Path, ckpt: Path, capsys: pyt
     write_exr(half, read_exr(demo_run / "noisy.exr").rgb, half=True)
     out = tmp_path / "out.exr"
     assert denoise_main([str(half), str(out), "--model", str(ckpt),
-                         "--reference", str(demo_run / "reference.exr")]) == 0
+                         "--reference", str(demo_run / "reference.exr"), "--json"]) == 0
     printed = json.loads(capsys.readouterr().out)
     assert set(printed["quality"]) == {"noisy", "denoised"}
     assert read_exr(out).rgb.shape == (24, 32, 3)
@@ -162,12 +162,15 @@ def test_denoise_bad_input(tmp_path: Path, ckpt: Path, demo_run: Path, capsys: p
 
 
 def test_shipped_model_beats_noisy_input_on_demo_scene(tmp_path: Path) -> None:
-    """The default model (denoise.denoiser.DEFAULT_MODEL) on our own 32-px demo scene at 16 spp."""
+    """The default model (the registry's ``high``) on our own 32-px demo scene at 16 spp."""
     out = tmp_path / "shipped"
     assert main([str(DEMO), "--spp", "16", "--res", "32", "32", "--reference-spp", "512",
                  "--out", str(out), "--quiet"]) == 0
     metrics = json.loads((out / "metrics.json").read_text())
-    assert metrics["model"]["models_run"] == ["fast", "u-balanced-k5-lowspp"]  # u-high: above 16 spp only
+    assert metrics["model"]["name"] == "high" and metrics["model"]["ran"] == "high"
+    # unet-l-allspp and flat-s-allspp in float32: above 16 spp only
+    assert metrics["model"]["models_run"] == ["flat-s-allspp", "unet-m-k5-lowspp", "unet-m-k5-lowspp-b"]
+    assert metrics["notes"] == [] and metrics["pixel_filter"] == "box"
     quality = metrics["quality"]
     assert quality["denoised"]["psnr"] > quality["noisy"]["psnr"] + 1.0
     assert quality["denoised"]["relmse"] < quality["noisy"]["relmse"]
@@ -182,3 +185,49 @@ def test_oidn_compared_by_default_only_when_installed(monkeypatch: pytest.Monkey
     assert run_module._oidn_setting(True)["compared"]  # asked for: oidn_denoise then names pyoidn
     monkeypatch.setattr(run_module, "oidn_available", lambda: True)
     assert run_module._oidn_setting(None)["compared"] and not run_module._oidn_setting(False)["compared"]
+
+
+@pytest.mark.parametrize("command", [main, denoise_main])
+def test_help_lists_the_registry_names_and_list_models_prints_the_cards(command, capsys: pytest.CaptureFixture) -> None:
+    with pytest.raises(SystemExit) as exc:
+        command(["--help"])
+    out = capsys.readouterr().out
+    assert exc.value.code == 0
+    for name in ("fast", "balanced", "high", "auto"):
+        assert f"\n  {name}: " in out  # one line each
+    with pytest.raises(SystemExit) as exc:
+        command(["--list-models"])  # no scene or file needed
+    out = capsys.readouterr().out
+    assert exc.value.code == 0 and out.startswith("fast: ") and "runs (spp unknown)" in out and "recipe" in out
+
+
+def test_a_wrong_model_name_lists_the_valid_ones(tmp_path: Path, demo_run: Path, capsys: pytest.CaptureFixture) -> None:
+    assert denoise_main([str(demo_run / "noisy.exr"), str(tmp_path / "o.exr"), "--model", "hihg"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "unknown model 'hihg' (registry names: fast, balanced, high, auto" in err
+    assert not (tmp_path / "o.exr").exists()
+
+
+def test_denoise_without_spp_says_what_it_ran_and_the_name_it_prints_works(
+        tmp_path: Path, demo_run: Path, capsys: pytest.CaptureFixture) -> None:
+    plain = tmp_path / "plain.exr"
+    write_exr(plain, read_exr(demo_run / "noisy.exr").rgb)  # no spp attribute
+    assert denoise_main([str(plain), str(tmp_path / "a.exr"), "--model", "fast"]) == 0
+    captured = capsys.readouterr()
+    assert "denoise: note: spp unknown: ran" in captured.err
+    assert "model fast (spp unknown)" in captured.out  # the table, not JSON
+    assert denoise_main([str(plain), str(tmp_path / "b.exr"), "--model", "fast", "--spp", "16", "--json"]) == 0
+    record = json.loads(capsys.readouterr().out)
+    assert record["model"] == "fast" and record["notes"] == [] and record["spp"] == 16
+    assert denoise_main([str(plain), str(tmp_path / "c.exr"), "--model", record["model"], "--quiet"]) == 0
+
+
+def test_render_and_denoise_takes_auto_without_a_budget(tmp_path: Path) -> None:
+    """``--model auto``: the registry picks an entry for the render's spp; the record names both."""
+    from model.registry import registry
+
+    out = tmp_path / "auto"
+    assert main([str(DEMO), "--spp", "4", "--res", "24", "24", "--model", "auto", "--no-compare",
+                 "--out", str(out), "--quiet"]) == 0
+    model = json.loads((out / "metrics.json").read_text())["model"]
+    assert model["name"] == "auto" and model["ran"] == registry().auto_entry(4)

@@ -130,9 +130,16 @@ def test_auto_gives_a_flat_low_spp_member_bfloat16_where_native(tmp_path: Path) 
 def test_the_default_runs_its_flat_net_in_bfloat16_up_to_16_spp_only() -> None:
     bf16 = "bfloat16" if native_bfloat16() else "float32"
     default = Denoiser()
-    assert {m.label: m.precision for m in default.members} == {
-        "fast:17-": "float32", "fast:9-16": bf16, "fast-lowspp:-8": bf16, "u-balanced-k5-lowspp": bf16,
-        "u-high:17-": bf16}
-    assert [m.label for m in default.active(12)] == ["fast:9-16", "u-balanced-k5-lowspp"]
-    assert [m.label for m in default.active(17)] == ["fast:17-", "u-high:17-"]
-    assert [m.label for m in default.active(None)] == ["fast:17-"]  # the spp unknown: fast in float32
+    assert [(m.spec, m.precision) for m in default.members] == [
+        ("flat-s-allspp:17-", "float32"), ("flat-s-allspp:9-16", bf16), ("flat-s-lowspp:-8", bf16),
+        ("unet-m-k5-lowspp:-16", bf16), ("unet-l-allspp:17-", bf16), ("unet-m-k5-lowspp-b:-16", bf16),
+        ("flat-s-allspp", "float32"), ("flat-s-allspp", bf16), ("unet-m-k5-lowspp", bf16)]
+    assert [m.spec for m in default.active(12)] == ["flat-s-allspp:9-16", "unet-m-k5-lowspp:-16",
+                                                    "unet-m-k5-lowspp-b:-16"]
+    assert [m.spec for m in default.active(17)] == ["flat-s-allspp:17-", "unet-l-allspp:17-"]
+    # the spp unknown: the U-Net on a noisy image, the flat net in bfloat16 on a cleaner one, in float32
+    # on a converged one
+    assert [m.spec for m in default.active(None, 0.5)] == ["unet-m-k5-lowspp"]
+    assert [(m.spec, m.precision) for m in default.active(None, 0.05)] == [("flat-s-allspp", bf16)]
+    assert [(m.spec, m.precision) for m in default.active(None, 0.01)] == [("flat-s-allspp", "float32")]
+    assert Denoiser(precision="float32").active(None, 0.05)[0].precision == "float32"  # asked for: it wins

@@ -29,24 +29,25 @@ def copy(tmp_path: Path) -> Path:
     shutil.copy(ROOT / "README.md", tmp_path)
     shutil.copytree(ROOT / "docs", tmp_path / "docs")
     shutil.copytree(ROOT / "benchmarks" / "results", tmp_path / "benchmarks" / "results")
-    (tmp_path / "model" / "weights").mkdir(parents=True)
-    for path in (ROOT / "model" / "weights").glob("*_*.json*"):
-        shutil.copy(path, tmp_path / "model" / "weights")
+    for path in (ROOT / "experiments" / "training").glob("*/*.json*"):
+        target = tmp_path / "experiments" / "training" / path.parent.name
+        target.mkdir(parents=True, exist_ok=True)
+        shutil.copy(path, target)
     return tmp_path
 
 
 def test_a_changed_figure_or_result_is_caught_and_rewritten(copy: Path) -> None:
     readme = copy / "README.md"
     text = readme.read_text()
-    table = MARKERS.search(text)
-    assert table and "| fast | 16 |" in table.group(3)
-    readme.write_text(text.replace("| fast | 16 |", "| fast | 16 | 99.99 |", 1))
-    assert stale_tables(copy) == [f"README.md: table {table.group(2)}"]
+    table = MARKERS.search(text[text.index("<!-- table:models -->"):])
+    assert table and "| `fast` | " in table.group(3)
+    readme.write_text(text.replace("| `fast` | ", "| `fast` | 99.99 | ", 1))
+    assert stale_tables(copy) == ["README.md: table models"]
     result = copy / "benchmarks" / "results" / "budget.json"
     data = json.loads(result.read_text())
     data["summary"]["per_budget"]["10"]["mean_psnr"] = 12.5
     result.write_text(json.dumps(data))
-    assert stale_tables(copy) == [f"README.md: table {table.group(2)}", "docs/speed.md: table budget"]
+    assert stale_tables(copy) == ["README.md: table models", "docs/evaluate.md: table budget"]
     rewritten = render_page(readme.read_text(), Results(copy))
     assert rewritten == text
 
@@ -70,9 +71,9 @@ def test_caption_names_command_file_date_and_load() -> None:
 def test_check_exits_1_on_a_stale_table(copy: Path, capsys: pytest.CaptureFixture) -> None:
     root = ["--root", str(copy)]
     assert readme_tables.main(["--check", *root]) == 0
-    page = copy / "docs" / "speed.md"
+    page = copy / "docs" / "evaluate.md"
     page.write_text(page.read_text().replace("| 10 | 17/17 |", "| 10 | 16/17 |"))
     assert readme_tables.main(["--check", *root]) == 1
-    assert capsys.readouterr().out == "stale: docs/speed.md: table budget\n"
+    assert capsys.readouterr().out == "stale: docs/evaluate.md: table budget\n"
     assert readme_tables.main(root) == 0 and readme_tables.main(["--check", *root]) == 0
     assert "| 10 | 17/17 |" in page.read_text()

@@ -14,6 +14,7 @@ from pipeline.cli import tradeoff_main
 from pipeline.evaluation import RenderSettings
 from denoise.oidn import oidn_available
 from pipeline.tradeoff import Point, TradeoffConfig, analyse, model_labels
+from pipeline.tradeoff_report import recommendation, recommendation_line
 from tests.test_denoise import write_tiny_checkpoint
 
 DEMO = Path(__file__).resolve().parents[1] / "scenes" / "examples" / "demo.xml"
@@ -56,6 +57,8 @@ def test_tradeoff_end_to_end(tmp_path: Path, ckpts: list[Path], capsys: pytest.C
     assert report.count("<tr>") >= 1 + len(result["points"]) and "https://" not in report
     printed = capsys.readouterr().out
     assert "equal-quality saving" in printed and "tiny-2" in printed
+    assert "recommended: " in printed and "Recommended" in report
+    assert f"report: {out / 'report.html'}" in printed
 
 
 def test_analyse_synthetic_points() -> None:
@@ -71,27 +74,36 @@ def test_analyse_synthetic_points() -> None:
     assert eq[("net", 1)]["raw_spp"] == pytest.approx(16) and not eq[("net", 1)]["extrapolated"]
     assert eq[("net", 1)]["saving"] == pytest.approx(0.16 / 0.06)
     assert eq[("net", 4)]["raw_spp"] == pytest.approx(256) and eq[("net", 4)]["extrapolated"]
+    # recommended: of the front's denoised points, the largest equal-quality saving
+    rec = recommendation(result)
+    assert (rec["denoiser"], rec["spp"]) == ("net", 4) and rec["saving"] == pytest.approx(eq[("net", 4)]["saving"])
+    assert recommendation_line(result).startswith("recommended: net at 4 spp")
+    only_raw = analyse([p for p in points if p.denoiser == "none"], {"scene": "x.xml", "resolution": [8, 8]}, "relmse")
+    assert recommendation(only_raw) is None and "raw render" in recommendation_line(only_raw)
 
 
-def test_missing_preset_weights_name_the_file(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
-                                               capsys: pytest.CaptureFixture) -> None:
-    monkeypatch.setattr(denoiser, "WEIGHTS_DIR", tmp_path)
-    with pytest.raises(DenoiserError, match=r"fast.ckpt: no weights for model preset 'fast'"):
-        model_labels(["fast"])
-    code = tradeoff_main([str(DEMO), "--models", "balanced", "--reference-spp", "4", "--out",
+def test_oidn_is_compared_by_default_when_installed(tmp_path: Path) -> None:
+    settings = RenderSettings(str(DEMO), reference_spp=4)
+    assert TradeoffConfig(settings, out="x").compare_oidn is None  # None: whenever pyoidn imports
+
+
+def test_an_unknown_model_is_a_one_line_error(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    with pytest.raises(DenoiserError, match="registry names: fast, balanced, high, auto"):
+        model_labels(["fsat"])
+    code = tradeoff_main([str(DEMO), "--models", "fsat", "--reference-spp", "4", "--out",
                           str(tmp_path / "o"), "--quiet"])
     err = capsys.readouterr().err.strip()
-    assert code == 1 and len(err.splitlines()) == 1 and str(tmp_path / "balanced.ckpt") in err
+    assert code == 1 and len(err.splitlines()) == 1 and "'fsat'" in err
 
 
-def test_ensemble_labels_join_their_members(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(denoiser, "WEIGHTS_DIR", tmp_path)
-    fast, mine = write_tiny_checkpoint(tmp_path / "fast.ckpt"), write_tiny_checkpoint(tmp_path / "mine.ckpt")
-    labels = model_labels(["fast", f"fast+{mine}"])
-    assert labels == {"fast": fast, "fast+mine": [fast, mine]}
-    assert len(denoiser.Denoiser(labels["fast+mine"]).members) == 2
-    with pytest.raises(DenoiserError, match="nope.ckpt: checkpoint not found"):
-        model_labels([f"fast+{tmp_path / 'nope.ckpt'}"])
+def test_labels_are_registry_names_or_the_members_files(tmp_path: Path) -> None:
+    mine = write_tiny_checkpoint(tmp_path / "mine.ckpt")
+    labels = model_labels(["fast", "high", f"flat-s-allspp+{mine}:-8", str(mine), str(mine)])
+    assert labels == {"fast": "fast", "high": "high", "flat-s-allspp+mine:-8": f"flat-s-allspp+{mine}:-8",
+                      "mine": str(mine), "mine-2": str(mine)}
+    assert len(denoiser.Denoiser(labels["flat-s-allspp+mine:-8"]).members) == 2
+    with pytest.raises(DenoiserError, match="nope.ckpt"):
+        model_labels([f"flat-s-allspp+{tmp_path / 'nope.ckpt'}"])
 
 
 def test_bad_settings(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
@@ -107,3 +119,7 @@ def test_bad_settings(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     with pytest.raises(SystemExit) as exc:
         tradeoff_main([str(DEMO)])  # no reference
     assert exc.value.code == 2 and "Traceback" not in capsys.readouterr().err
+
+
+def test_registry_names_label_themselves_auto_included() -> None:
+    assert model_labels(["auto", "balanced"]) == {"auto": "auto", "balanced": "balanced"}

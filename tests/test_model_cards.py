@@ -1,0 +1,34 @@
+"""benchmarks.model_cards: the cards' generated fields are what the files they describe say."""
+from __future__ import annotations
+
+import json
+
+from benchmarks.model_cards import entry_figures, fill, training_summary
+from model.registry import MANIFEST, registry
+
+
+def test_the_shipped_cards_match_their_files() -> None:
+    """Hashes, training records and figures in the manifest are those the checkpoints and the
+    result files give now: run `python -m benchmarks.model_cards` after changing either."""
+    current = json.loads(MANIFEST.read_text())
+    assert fill(current) == current
+
+
+def test_figures_are_taken_only_from_results_that_measured_the_entrys_files() -> None:
+    shas = {"a" * 64, "b" * 64}
+    evaluate = {"summary": {"scored": {str(s): {"models": {"fast": {"psnr": 30.0 + s / 100, "flip": 0.05}}}
+                                       for s in (4, 16, 128)}},
+                "models": {"fast": {"sha256": "+".join(sorted(shas))}}}
+    inference = {"sha256": {"fast": "+".join(sorted(shas))},
+                 "ratios": {"1280x720": {"fast": {"4": 0.5, "128": 0.9, "unknown": 0.7}}}}
+    figures = entry_figures("fast", shas, evaluate, inference)
+    assert figures["psnr"] == {"4": 30.04, "16": 30.16, "128": 31.28} and figures["flip"] == {"16": 0.05}
+    assert figures["time"] == {"1280x720": {"spp": 128, "ratio": 0.9}} and figures["time_ratio"] == 0.9
+    assert figures["time_unknown_spp"] == {"1280x720": 0.7}
+    assert entry_figures("fast", {"c" * 64}, evaluate, inference) == {}  # other files: nothing taken
+
+
+def test_a_checkpoints_training_summary_comes_from_its_header() -> None:
+    card = registry().checkpoints["unet-m-k5-lowspp"]
+    summary = training_summary(registry().folder / card.file)
+    assert summary["steps"] > 0 and summary["cpu_minutes"] > 0 and "1-16 spp" in summary["data"]
