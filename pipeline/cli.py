@@ -4,6 +4,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -61,10 +62,16 @@ def add_model_argument(p: argparse.ArgumentParser) -> None:
     p.formatter_class = argparse.RawDescriptionHelpFormatter
 
 
-def print_notes(notes: list[str], prog: str) -> None:
-    """What the run's notes say (an unknown spp, filtered noise), on stderr, one line each."""
-    for note in notes:
-        print(f"{prog}: note: {note}", file=sys.stderr)
+def print_record(parser: argparse.ArgumentParser, record: dict[str, Any], args: argparse.Namespace,
+                 table: Callable[[dict[str, Any]], list[str]]) -> None:
+    """A run's notes on stderr (``PROG: note: ...``, one line each), then its record as JSON
+    (``--json``) or its ``table`` (unless ``--quiet``) on stdout."""
+    for note in record.get("notes", []):
+        print(f"{parser.prog}: note: {note}", file=sys.stderr)
+    if args.json:
+        print(json.dumps(record, indent=1))
+    elif not args.quiet:
+        print("\n".join(table(record)))
 
 
 def add_render_arguments(p: argparse.ArgumentParser, reference_required: bool, guard_help: str) -> None:
@@ -135,15 +142,10 @@ def main(argv: list[str] | None = None) -> int:
                     time_budget=args.time_budget, curves=args.curves)
     log = (lambda s: None) if args.quiet or args.json else (lambda s: print(f"... {s}", file=sys.stderr))
     metrics, code = parser.attempt(lambda: run(cfg, log))
-    if code:
-        return code
-    print_notes(metrics.get("notes", []), parser.prog)
-    if args.json:
-        print(json.dumps(metrics, indent=1))
-    elif not args.quiet:
-        print("\n".join(summary_lines(metrics)))
-        print(f"report: {Path(cfg.out) / 'report.html'} (metrics.json, comparison.png beside it)")
-    return 0
+    if code == 0:
+        print_record(parser, metrics, args, lambda m: [
+            *summary_lines(m), f"report: {Path(cfg.out) / 'report.html'} (metrics.json, comparison.png beside it)"])
+    return code
 
 
 def denoise_parser() -> OneLineParser:
@@ -199,14 +201,9 @@ def denoise_main(argv: list[str] | None = None) -> int:
     from pipeline.denoise_file import denoise_summary
 
     result, code = parser.attempt(lambda: denoise_file(cfg))
-    if code:
-        return code
-    print_notes(result.get("notes", []), parser.prog)
-    if args.json:
-        print(json.dumps(result, indent=1))
-    elif not args.quiet:
-        print("\n".join(denoise_summary(result)))
-    return 0
+    if code == 0:
+        print_record(parser, result, args, denoise_summary)
+    return code
 
 
 def tradeoff_parser() -> OneLineParser:
