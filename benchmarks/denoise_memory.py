@@ -46,7 +46,7 @@ ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results" / "denoise_memory.json"
 DEMO = ROOT / "scenes" / "examples" / "demo.xml"
 MB = 2**20
-PRESETS = ("fast", "balanced", "high", "u-fast", "u-balanced", "u-high")
+PRESETS = ("flat-s", "flat-m", "flat-l", "unet-s", "unet-m", "unet-l")
 TILE_SIDES = (128, 256, 384, 512, 768)
 
 _COMMON = r"""
@@ -170,7 +170,7 @@ def calibrate(presets: tuple[str, ...], sides: tuple[int, ...]) -> list[dict[str
     settings = [("folded", True, True), ("module", False, True)]
     for preset in presets:
         for label, folded, allocator in settings + ([("folded, glibc default", True, False)]
-                                                   if preset in ("fast", "balanced") else []):
+                                                   if preset in ("flat-s", "flat-m") else []):
             for side in sides if label != "module" else sides[:3]:
                 job = {"preset": preset, "folded": folded, "allocator": allocator, "side": side}
                 r = {**job, "setting": label, **run_child(ROOT, _TILE_CHILD, job)}
@@ -257,7 +257,7 @@ def main() -> None:
             "machine": f"{platform.machine()}, {os.cpu_count()} cores, {platform.python_version()}",
             "load_avg_before": os.getloadavg()}
         if part == "calibrate":
-            record["rows"] = calibrate(("fast",) if args.quick else PRESETS, (128, 256) if args.quick else TILE_SIDES)
+            record["rows"] = calibrate(("flat-s",) if args.quick else PRESETS, (128, 256) if args.quick else TILE_SIDES)
         else:
             record.update(scene=str(DEMO.relative_to(ROOT)), spp=args.spp, before_rev=args.before)
             with tempfile.TemporaryDirectory(prefix="denoise-memory-") as tmp:

@@ -310,7 +310,7 @@ def _parse() -> argparse.Namespace:
     p.add_argument("--ref-spp", type=int, default=4096, help="default: the dataset command of docs/training.md")
     p.add_argument("--steps", type=int, default=30)
     p.add_argument("--warmup-steps", type=int, default=5, help="first steps of each run left out of the rates")
-    p.add_argument("--preset", default="fast", choices=sorted(PRESETS))
+    p.add_argument("--preset", default="flat-s", choices=sorted(PRESETS))
     p.add_argument("--batch", type=int, default=64)
     p.add_argument("--machines", default="1,2,4,8,16", help="machine counts of the estimate")
     p.add_argument("--link-gbps", type=float, default=10.0, help="network assumed for the N-machine estimate")

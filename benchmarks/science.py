@@ -6,8 +6,8 @@ so a busy machine changes wall time, not the comparison), validating on the same
 scenes. The designs:
 
 * ``flat_paper``  — Kim & Lee's flat DenseNet (k=12, L=20), 32-px patches, batch 64
-* ``flat_fast``   — today's flat ``fast`` (k=8, L=10), 32-px patches, batch 64
-* ``unet_noise``  — the multi-scale dense network ``u-balanced`` with the noise input (the variance
+* ``flat_fast``   — the flat ``flat-s`` preset (k=8, L=10), 32-px patches, batch 64
+* ``unet_noise``  — the multi-scale dense network ``unet-m`` with the noise input (the variance
   averaged over 5x5 pixels), 128-px patches
 * ``unet_noise_px`` — the same with each pixel's own variance estimate (``--noise-radius 0``)
 * ``unet_rgb``    — the same without the noise input
@@ -41,12 +41,12 @@ from imaging.atomic_io import write_json_atomic
 from training.run_log import RunLog, validation_curve
 
 RESULTS = Path(__file__).resolve().parent / "results"
-UNET = ["--preset", "u-balanced", "--patch", "128", "--batch", "8", "--lr", "1e-3", "--lr-warmup", "100"]
-NOISE = ["--noise-input", "--noise-radius", "2"]  # the u- presets were made RGB-only after this table
+UNET = ["--preset", "unet-m", "--patch", "128", "--batch", "8", "--lr", "1e-3", "--lr-warmup", "100"]
+NOISE = ["--noise-input", "--noise-radius", "2"]  # the unet- presets were made RGB-only after this table
 FLAT = ["--patch", "32", "--batch", "64", "--lr", "1e-3"]
 RUNS: dict[str, list[str]] = {
     "flat_paper": ["--preset", "paper", *FLAT, "--val-every", "40"],
-    "flat_fast": ["--preset", "fast", *FLAT, "--val-every", "150"],
+    "flat_fast": ["--preset", "flat-s", *FLAT, "--val-every", "150"],
     "unet_noise": [*UNET, *NOISE, "--val-every", "100"],
     "unet_noise_px": [*UNET, "--noise-input", "--noise-radius", "0", "--val-every", "100"],
     "unet_rgb": [*UNET, "--no-noise-input", "--val-every", "100"],

@@ -30,7 +30,7 @@ from training.run_log import RunLog
 
 ROOT = Path(__file__).resolve().parents[1]
 
-BASE = ["--preset", "fast", "--transfer", "log", "--output", "residual", "--lr", "0.001"]
+BASE = ["--preset", "flat-s", "--transfer", "log", "--output", "residual", "--lr", "0.001"]
 RUNS: dict[str, list[str]] = {
     "baseline": [],
     "pu": ["--transfer", "pu"],

@@ -36,7 +36,7 @@ from model.architectures import build_model, count_parameters
 from training.patches import PatchConfig, TrainingPair, sample_batch
 from training.loss import denoising_loss
 from training.step import NonFiniteGuard, train_step
-from training.train import to_tensor
+from training.batches import to_tensor
 
 RESULTS = Path(__file__).resolve().parent / "results" / "train_throughput.json"
 PATCH = 28
@@ -204,7 +204,7 @@ def equivalence(preset_name: str, variants: list[Variant], pairs: list[TrainingP
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--presets", nargs="+", default=["fast", "balanced", "high"])
+    parser.add_argument("--presets", nargs="+", default=["flat-s", "flat-m", "flat-l"])
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--steps", type=int, default=3, help="steps per variant per round")
     parser.add_argument("--no-compile", action="store_true", help="skip the torch.compile variant")

@@ -11,7 +11,8 @@ from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
 from imaging.atomic_io import write_text_atomic
-from imaging.errors import DatasetError
+from imaging.errors import DatasetError, SceneError
+from rendering.scene_io import pixel_filter_spec
 
 CONFIG_NAME = "dataset.json"
 FORMAT_VERSION = 1
@@ -23,7 +24,11 @@ class DatasetConfig:
     sample counts; ``ref_spp`` the reference's (rendered as two halves); ``aovs`` extra buffers
     rendered with each noisy image ("alb", "nrm"); ``val_fraction`` of scenes go to split "val";
     ``variance``: each noisy image of >= 2 spp is rendered as two halves of independent samples and
-    its per-pixel variance estimate written beside it (kind ``var``), as ``render-and-denoise`` does."""
+    its per-pixel variance estimate written beside it (kind ``var``), as ``render-and-denoise`` does.
+    ``filter``: the pixel filter of every render, "box" or a dict such as {"type": "gaussian",
+    "stddev": 0.5} (:func:`rendering.scene_io.pixel_filter_spec`; a box is stored as "box", as in
+    datasets made before other filters existed). ``scene_files``: render these Mitsuba XML files
+    (scene i is file i, absolute paths) instead of procedural ``families``."""
 
     res: tuple[int, int] = (128, 128)
     spp: tuple[int, ...] = (4, 16, 64, 128)
@@ -32,8 +37,9 @@ class DatasetConfig:
     seed: int = 0
     aovs: tuple[str, ...] = ()
     val_fraction: float = 0.1
-    filter: str = "box"
+    filter: str | dict = "box"
     variance: bool = False
+    scene_files: tuple[str, ...] = ()
     version: int = FORMAT_VERSION
     mitsuba: str = ""
     variant: str = ""
@@ -48,11 +54,22 @@ class DatasetConfig:
             raise DatasetError(f"reference spp must be even and >= 2 (two halves), got {self.ref_spp}")
         if not 0.0 <= self.val_fraction < 1.0:
             raise DatasetError(f"val fraction must be in [0, 1), got {self.val_fraction}")
-        if not self.families:
+        if not self.families and not self.scene_files:
             raise DatasetError("no scene families selected")
+        if self.families and self.scene_files:
+            raise DatasetError("a dataset renders either procedural families or scene files, not both")
+        try:
+            pixel_filter_spec(self.filter)
+        except SceneError as exc:
+            raise DatasetError(str(exc)) from None
         bad = [a for a in self.aovs if a not in ("alb", "nrm")]
         if bad:
             raise DatasetError(f"unknown AOV {bad[0]!r} (known: alb, nrm)")
+
+    @property
+    def pixel_filter(self) -> dict:
+        """The canonical pixel filter, {"type": NAME, PARAM: value...}."""
+        return pixel_filter_spec(self.filter)
 
     def to_json(self) -> dict:
         return asdict(self)
@@ -65,6 +82,16 @@ class DatasetConfig:
             raise DatasetError(f"unknown keys {sorted(unknown)}")
         tuples = {k: tuple(v) for k, v in data.items() if isinstance(v, list)}
         return cls(**{**data, **tuples})
+
+
+def stored_filter(value: str | dict | None) -> str | dict:
+    """A pixel filter as ``DatasetConfig.filter`` stores it: "box" for a box (as every dataset made
+    before other filters existed says), else its canonical dict. Raises :class:`DatasetError`."""
+    try:
+        spec = pixel_filter_spec(value)
+    except SceneError as exc:
+        raise DatasetError(str(exc)) from None
+    return "box" if spec["type"] == "box" else spec
 
 
 def settings_diff(a: DatasetConfig, b: DatasetConfig) -> list[str]:

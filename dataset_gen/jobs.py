@@ -22,6 +22,7 @@ from rendering.render import load_scene, prepare, render_loaded
 IMAGES_DIR = "images"
 SCENES_DIR = "scenes"
 _AOV_RENDER_NAMES = {"alb": "albedo", "nrm": "sh_normal"}
+SCENE_FILE_FAMILY = "scene-file"  # the family of a scene rendered from a user's file
 _AOV_LAYER_NAMES = {"alb": "albedo", "nrm": "normal"}
 
 
@@ -43,10 +44,16 @@ def scene_seeds(cfg: DatasetConfig, index: int) -> SceneSeeds:
     that "val" covers all families.
     """
     words = np.random.SeedSequence([cfg.seed, index]).generate_state(4 + len(cfg.spp))
-    family = cfg.families[index % len(cfg.families)]
+    family = cfg.families[index % len(cfg.families)] if cfg.families else SCENE_FILE_FAMILY
     split = "val" if (int(words[1]) / 2**32) < cfg.val_fraction else "train"
     noisy = {spp: int(words[4 + i]) for i, spp in enumerate(cfg.spp)}
     return SceneSeeds(family, int(words[0]), split, noisy, (int(words[2]), int(words[3])))
+
+
+def filter_label(spec: dict[str, Any]) -> str:
+    """A pixel filter as one string for an EXR header: ``box``, ``gaussian:stddev=0.5``."""
+    params = ",".join(f"{k}={v:g}" for k, v in spec.items() if k != "type")
+    return spec["type"] + (f":{params}" if params else "")
 
 
 def reference_noise(half_a: np.ndarray, half_b: np.ndarray) -> dict[str, float]:
@@ -84,19 +91,22 @@ def run_job(cfg: DatasetConfig, index: int, folder: Path) -> dict[str, Any]:
 
     t0 = time.perf_counter()
     seeds = scene_seeds(cfg, index)
-    gen = generate(seeds.family, seeds.scene_seed)
-    xml = write_scene(gen, folder / SCENES_DIR / scene_name(index))
+    if cfg.scene_files:
+        xml = Path(cfg.scene_files[index])
+    else:
+        xml = write_scene(generate(seeds.family, seeds.scene_seed), folder / SCENES_DIR / scene_name(index))
     t_gen = time.perf_counter() - t0
 
     render_aovs = tuple(_AOV_RENDER_NAMES[a] for a in cfg.aovs)
     meta_base = {"scene": scene_name(index), "family": seeds.family, "mitsuba": cfg.mitsuba,
-                 "variant": cfg.variant, "filter": cfg.filter}
+                 "variant": cfg.variant, "filter": filter_label(cfg.pixel_filter)}
     timings: dict[str, float] = {"generate_s": t_gen}
     nonfinite: dict[str, int] = {}
     variance_spp: list[int] = []
     images = folder / IMAGES_DIR
-    with_aovs = load_scene(prepare(xml, tuple(cfg.res), render_aovs)) if render_aovs else None
-    plain = load_scene(prepare(xml, tuple(cfg.res)))
+    pixel_filter = cfg.pixel_filter
+    with_aovs = load_scene(prepare(xml, tuple(cfg.res), render_aovs, pixel_filter=pixel_filter)) if render_aovs else None
+    plain = load_scene(prepare(xml, tuple(cfg.res), pixel_filter=pixel_filter))
     timings["load_s"] = time.perf_counter() - t0 - t_gen
 
     for spp in cfg.spp:
@@ -129,5 +139,6 @@ def run_job(cfg: DatasetConfig, index: int, folder: Path) -> dict[str, Any]:
         "variance_spp": variance_spp,
         "ref_noise": noise, "timings": timings, "nonfinite": nonfinite,
         "mitsuba": cfg.mitsuba, "variant": cfg.variant, "filter": cfg.filter,
+        **({"scene_file": str(xml)} if cfg.scene_files else {}),
         "samples": int(cfg.res[0] * cfg.res[1] * (sum(cfg.spp) + cfg.ref_spp)),
     }

@@ -32,6 +32,7 @@ from imaging.blocks import block_rows, parallel_map, pass_workers, row_blocks
 from denoise.tiling import Core, Tile, run_windows
 from model.architectures import alignment, inference_bytes_per_pixel, receptive_radius
 from model.config import ModelConfig
+from model.device import module_device
 from denoise.flips import FLIPS, check_flips
 from model.noise_input import noise_channels
 from model.transfer import HDR_MAX, TransferFunction, get_transfer
@@ -239,7 +240,7 @@ def denoise_image(model: nn.Module, color: np.ndarray, aux: Aux = None,
     mirrored copies of each window (:func:`flip_average`; more time, a little more accuracy,
     docs/experiments.md). ``exposure``: :func:`image_exposure` of ``color`` when the caller has it
     (several models on one image), else computed here. The model runs in eval mode; its previous
-    mode is restored.
+    mode is restored. A model on a GPU gets each tile's input there; the rest runs on the CPU.
     """
     config = model.config
     _check_inputs(config, color, aux, variance)
@@ -279,13 +280,14 @@ def denoise_image(model: nn.Module, color: np.ndarray, aux: Aux = None,
             del var
         bound = neighbourhood_max(encoded, radius)
         del rgb, encoded
-        y = flip_average(model, x, flips, align)[0]
+        y = flip_average(model, x.to(device, non_blocking=True), flips, align)[0].cpu()  # a GPU's back here
         del x
         y = torch.minimum(torch.nan_to_num_(y, nan=0.0).clamp_(0.0, 1.0), bound, out=y)
         del bound
         y = transfer.inverse(y).permute(1, 2, 0).numpy()
         return y if scale == 1.0 else np.divide(y, np.float32(scale), out=y)
 
+    device = module_device(model)
     was_training = model.training
     if was_training:  # (each switch walks every submodule: ~3 ms a call at 128^2 for a folded u-net)
         model.eval()

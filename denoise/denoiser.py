@@ -194,17 +194,20 @@ class Denoiser:
     module is always float32). ``flips``: average the network over 1, 2 or 4 mirrored copies of
     each tile (:func:`denoise.chain.flip_average`): 2x or 4x the network's time for ~0.1 or ~0.2 dB.
     ``energy``: match the output's local means to the render's where they differ by more than its
-    noise, after the guard (:mod:`denoise.energy`; None: off).
+    noise, after the guard (:mod:`denoise.energy`; None: off). ``device``: where the networks run
+    (:func:`model.device.choose_device`: ``cpu``, ``cuda``, ``auto``); on a GPU each member runs its
+    training module in float32 (``optimize`` and ``precision`` apply to the CPU).
     """
 
     def __init__(self, model: ModelArg = None,
                  max_memory_mb: float = DEFAULT_MAX_MEMORY_MB, threads: int | None = None,
                  optimize: bool = True, skip_below: float | None = None, precision: str = "auto",
-                 flips: int = 1, energy: EnergySettings | None = EnergySettings()) -> None:
+                 flips: int = 1, energy: EnergySettings | None = EnergySettings(), device: str = "cpu") -> None:
         import torch
 
         from denoise.flips import check_flips
         from denoise.precision import check_precision
+        from model.device import choose_device
 
         try:
             check_precision(precision)  # before the checkpoint is read
@@ -224,6 +227,10 @@ class Denoiser:
                                           else precision, (m.lo, m.hi), m.given)
                           for m in self.selection.members}
         self.members = list(self._networks.values())
+        self.device = choose_device(device)
+        if self.device.type != "cpu":  # the folded copies are CPU kernels: a GPU runs the module itself
+            for member in self.members:
+                member.net, member.dtype = member.model.to(self.device), torch.float32
         for member in self.members:
             if member.max_spp and member.min_spp > member.max_spp:
                 raise DenoiserError(f"{member.label}: the range leaves out every spp {member.path.name} "

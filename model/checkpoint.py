@@ -6,7 +6,11 @@ safetensors metadata entry ``denoiser_checkpoint`` holds a JSON header::
 
     {"format": "mc-densenet-denoiser-checkpoint", "format_version": 1, "step": 1200,
      "model_config": {...ModelConfig...}, "train_config": {...} | null, "data_config": {...} | null,
-     "optimizer": {"type": "Adam", "param_groups": [...]} | null, "extra": {...}}
+     "optimizer": {"type": "Adam", "param_groups": [...]} | null, "extra": {...}, "meta": {...}}
+
+``meta`` is what a model card shows (:func:`checkpoint_meta`): the recipe that made the file (name,
+sha256, stage), the CPU and GPU hours of every stage up to it, the hardware, and the pixel filter
+of the renders it was trained on (:func:`pixel_filter`; absent means a box filter).
 
 :func:`load_model` rebuilds the network from the file alone. Files are written atomically, and
 non-finite weights are never written.
@@ -34,6 +38,7 @@ FORMAT = "mc-densenet-denoiser-checkpoint"
 FORMAT_VERSION = 1
 _META_KEY = "denoiser_checkpoint"
 _IMPLEMENTATION_FLAGS = ("fused", "foreach", "capturable", "differentiable")
+BOX_FILTER = {"type": "box"}  # the pixel filter of a checkpoint that records none
 
 
 @dataclass
@@ -71,8 +76,8 @@ def code_version() -> dict[str, Any]:
 def save_checkpoint(path: str | Path, model: torch.nn.Module, *, step: int,
                     optimizer: torch.optim.Optimizer | None = None,
                     train_config: dict[str, Any] | None = None, data_config: dict[str, Any] | None = None,
-                    extra: dict[str, Any] | None = None) -> None:
-    """Write ``model`` (+ optimiser, torch RNG, configs) to ``path`` atomically.
+                    extra: dict[str, Any] | None = None, meta: dict[str, Any] | None = None) -> None:
+    """Write ``model`` (+ optimiser, torch RNG, configs, the card's ``meta``) to ``path`` atomically.
 
     Raises :class:`CheckpointError` if any weight or buffer is NaN/Inf (nothing is written).
     """
@@ -87,6 +92,8 @@ def save_checkpoint(path: str | Path, model: torch.nn.Module, *, step: int,
         "model_config": model.config.to_dict(), "train_config": train_config, "data_config": data_config,
         "optimizer": None, "extra": extra or {}, "code": dict(code_version()),
     }
+    if meta:
+        header["meta"] = meta
     if optimizer is not None:
         header["optimizer"] = _optimizer_header(optimizer)
         for i, state in optimizer.state_dict()["state"].items():
@@ -171,6 +178,27 @@ def compact_optimizer(src: str | Path, dst: str | Path) -> None:
                    and not k.endswith("/step") else v)
                for k, v in ckpt.tensors.items()}
     _write(Path(dst), tensors, {**ckpt.header, "optimizer": {**ckpt.header["optimizer"], "moments": "bfloat16"}})
+
+
+def checkpoint_meta(header: dict[str, Any]) -> dict[str, Any]:
+    """The ``meta`` entry of a checkpoint header (``Checkpoint.header`` or :func:`load_model`'s
+    third value): ``recipe`` ({"name", "sha256", "stage"}), ``hours`` ({"cpu", "gpu"}: all stages
+    up to this file), ``hardware`` (list of strings), ``pixel_filter``; {} for a file without one."""
+    meta = header.get("meta")
+    return dict(meta) if isinstance(meta, dict) else {}
+
+
+def pixel_filter(header: dict[str, Any]) -> dict[str, Any]:
+    """The pixel filter of the renders the checkpoint was trained on, as {"type": NAME, PARAM: value,
+    ...} (e.g. {"type": "gaussian", "stddev": 0.5}): ``meta.pixel_filter``, else its dataset's
+    ``filter`` (a name or such a dict), else a box filter (every checkpoint that records none was
+    trained on box-filtered renders)."""
+    recorded = checkpoint_meta(header).get("pixel_filter")
+    if recorded is None:
+        recorded = (header.get("data_config") or {}).get("filter")
+    if isinstance(recorded, str):
+        return {"type": recorded}
+    return dict(recorded) if isinstance(recorded, dict) and recorded.get("type") else dict(BOX_FILTER)
 
 
 def model_from_checkpoint(ckpt: Checkpoint) -> torch.nn.Module:

@@ -1,21 +1,25 @@
-"""Typed model configuration and the named presets.
+"""Typed model configuration and the named architecture presets.
 
 A :class:`ModelConfig` fully describes a network: it is saved in every checkpoint and the model is
-rebuilt from it alone. Presets (parameter counts for ``aux_inputs=False``, checked by
-``tests/test_model_config.py``), all with the PU transfer and residual output that measured best
-(README, "Choices, measured"):
+rebuilt from it alone. Presets name architectures (``train --preset``), never shipped models: the
+models a user picks by name (``fast``, ``balanced``, ``high``) live in the registry, and a preset
+name never means a checkpoint. Parameter counts for ``aux_inputs=False``, checked by
+``tests/test_model_config.py``; all with the PU transfer and residual output that measured best
+(docs/experiments.md):
 
-* ``fast``     — k=8,  L=10, first conv 16 wide:  51,232 parameters (plaincnn: width 14, 52,328)
-* ``balanced`` — k=8,  L=20, first conv 16 wide: 122,112 parameters (plaincnn: width 17, 118,784)
-* ``high``     — k=8,  L=30, first conv 16 wide: 220,192 parameters (plaincnn: width 22, 224,824)
-* ``paper``    — k=12, L=20, first conv 24 wide: 261,888 parameters (plaincnn: width 26, 264,832)
+* ``flat-s``  — flat densenet, k=8,  L=10, first conv 16 wide:  51,232 parameters (plaincnn: width 14, 52,328)
+* ``flat-m``  — flat densenet, k=8,  L=20, first conv 16 wide: 122,112 parameters (plaincnn: width 17, 118,784)
+* ``flat-l``  — flat densenet, k=8,  L=30, first conv 16 wide: 220,192 parameters (plaincnn: width 22, 224,824)
+* ``paper``   — flat densenet, k=12, L=20, first conv 24 wide: 261,888 parameters (plaincnn: width 26, 264,832)
+* ``unet-s``, ``unet-m``, ``unet-l`` — the multi-scale dense U-Net (:mod:`model.unet`), five
+  resolutions, growing in width and depth (docs/multiscale.md)
 
-``fast``, ``balanced`` and ``high`` share growth rate and width, so each is a prefix of the next:
-the deeper ones are trained warm-started from the shallower (:mod:`model.grow`), which is what
-the 2-core CPU affords. ``paper`` is Kim & Lee's network (one dense block of L=20 bottleneck
-layers; k=12 is our choice, the paper gives none) and the default of ``train``. With
-``aux_inputs`` the first conv takes 15 instead of 9 channels (+4,704 parameters, +7,056 for
-``paper``).
+``flat-s``, ``flat-m`` and ``flat-l`` share growth rate and width, so each is a prefix of the next:
+the deeper ones can be warm-started from the shallower (:mod:`model.grow`). ``paper`` is Kim &
+Lee's network (one dense block of L=20 bottleneck layers; k=12 is our choice, the paper gives
+none). With ``aux_inputs`` the first conv takes 15 instead of 9 channels (+4,704 parameters,
++7,056 for ``paper``). The network ``train`` builds when no preset is named is the default model's
+(``unet-m`` with the predicted 5x5 filter, :data:`DEFAULT_TRAIN_MODEL`).
 """
 from __future__ import annotations
 
@@ -159,20 +163,24 @@ class ModelConfig:
 
 
 PRESETS: dict[str, ModelConfig] = {
-    "fast": ModelConfig(layers=10, growth=8, init_features=16, transfer="pu"),
-    "balanced": ModelConfig(layers=20, growth=8, init_features=16, transfer="pu"),
-    "high": ModelConfig(layers=30, growth=8, init_features=16, transfer="pu"),
+    "flat-s": ModelConfig(layers=10, growth=8, init_features=16, transfer="pu"),
+    "flat-m": ModelConfig(layers=20, growth=8, init_features=16, transfer="pu"),
+    "flat-l": ModelConfig(layers=30, growth=8, init_features=16, transfer="pu"),
     "paper": ModelConfig(layers=20, growth=12, init_features=24, transfer="pu"),
-    # the multi-scale family (model.unet): 2 dense layers per block, 5 resolutions (1/2 .. 1/32); RGB
+    # the multi-scale family (model.unet): 2-3 dense layers per block, 5 resolutions (1/2 .. 1/32); RGB
     # only: the noise input (--noise-input) cost 1.4 dB at equal CPU time (docs/experiments.md, science)
-    "u-fast": ModelConfig(arch="dense_unet", levels=4, layers=2, growth=8, init_features=24, transfer="pu"),
-    "u-balanced": ModelConfig(arch="dense_unet", levels=4, layers=2, growth=12, init_features=32, transfer="pu"),
-    "u-high": ModelConfig(arch="dense_unet", levels=4, layers=3, growth=16, init_features=48, transfer="pu"),
+    "unet-s": ModelConfig(arch="dense_unet", levels=4, layers=2, growth=8, init_features=24, transfer="pu"),
+    "unet-m": ModelConfig(arch="dense_unet", levels=4, layers=2, growth=12, init_features=32, transfer="pu"),
+    "unet-l": ModelConfig(arch="dense_unet", levels=4, layers=3, growth=16, init_features=48, transfer="pu"),
 }
+# What ``train`` builds when no preset is named: the default model's U-Net (unet-m with the predicted
+# 5x5 filter, the network of training/recipes/unet-m-k5-lowspp.toml).
+DEFAULT_TRAIN_MODEL = dataclasses.replace(PRESETS["unet-m"], kernel=5)
 
 
 def preset(name: str, **overrides: Any) -> ModelConfig:
-    """The named preset, with optional field overrides (e.g. ``arch="plaincnn"``)."""
+    """The named preset, with optional field overrides (e.g. ``arch="plaincnn"``); raises
+    :class:`ConfigError` listing the valid names for any other name."""
     if name not in PRESETS:
-        raise ConfigError(f"unknown model preset {name!r} (known: {', '.join(PRESETS)})")
+        raise ConfigError(f"unknown model preset {name!r} (valid: {', '.join(PRESETS)})")
     return dataclasses.replace(PRESETS[name], **overrides)

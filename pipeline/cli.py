@@ -13,10 +13,13 @@ from rendering.render import DEFAULT_MAX_MEMORY_MB
 from console.usage import OneLineParser, int_list, name_list, name_value, positive_float, positive_int
 from denoise.flips import FLIPS
 from denoise.precision import PRECISIONS
+from model.device import DEVICES
 from model.registry import AUTO, AUTO_TOLERANCE_DB, registry
 from pipeline.evaluation import RenderSettings
 
 
+DEVICE_HELP = ("where the networks run: cpu (default; the measured path), cuda (a GPU: the unfolded "
+               "network in float32), auto (cuda when present)")
 PRECISION_HELP = ("float format of the network: bfloat16 halves its time on CPUs with native bfloat16 "
                   "(AMX, AVX512-BF16) at a measured cost in quality (docs/experiments.md); auto: bfloat16 "
                   "for the multi-scale nets where the CPU has it natively, else float32")
@@ -91,6 +94,7 @@ def add_render_arguments(p: argparse.ArgumentParser, reference_required: bool, g
     p.add_argument("--precision", choices=PRECISIONS, default="auto", help=PRECISION_HELP)
     p.add_argument("--flips", type=int, choices=tuple(FLIPS), default=1, help=FLIPS_HELP)
     p.add_argument("--no-energy", action="store_true", help=ENERGY_HELP)
+    p.add_argument("--device", choices=DEVICES, default="cpu", help=DEVICE_HELP)
 
 
 def render_settings(args: argparse.Namespace) -> RenderSettings:
@@ -99,7 +103,7 @@ def render_settings(args: argparse.Namespace) -> RenderSettings:
                           params=dict(args.param), max_memory_mb=args.max_memory_mb,
                           noise_guard=not args.no_noise_guard, skip_below=args.skip_below,
                           precision=args.precision, flips=args.flips, energy=not args.no_energy,
-                          reference=args.reference,
+                          device=args.device, reference=args.reference,
                           reference_spp=args.reference_spp)
 
 
@@ -175,6 +179,7 @@ def denoise_parser() -> OneLineParser:
     p.add_argument("--precision", choices=PRECISIONS, default="auto", help=PRECISION_HELP)
     p.add_argument("--flips", type=int, choices=tuple(FLIPS), default=1, help=FLIPS_HELP)
     p.add_argument("--no-energy", action="store_true", help=ENERGY_HELP)
+    p.add_argument("--device", choices=DEVICES, default="cpu", help=DEVICE_HELP)
     p.add_argument("--json", action="store_true", help="print what was done as JSON instead of the table")
     p.add_argument("--quiet", action="store_true", help="print nothing on success")
     return p
@@ -197,7 +202,7 @@ def denoise_main(argv: list[str] | None = None) -> int:
                             variance_layer=args.variance_layer, rgb_only=args.rgb_only, spp=args.spp,
                             noise_guard=not args.no_noise_guard, max_memory_mb=args.max_memory_mb,
                             skip_below=args.skip_below, precision=args.precision, flips=args.flips,
-                            energy=not args.no_energy)
+                            energy=not args.no_energy, device=args.device)
     from pipeline.denoise_file import denoise_summary
 
     result, code = parser.attempt(lambda: denoise_file(cfg))

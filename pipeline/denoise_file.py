@@ -56,6 +56,7 @@ class DenoiseFileConfig:
     max_memory_mb: float = 1024.0
     skip_below: float | None = None
     precision: str = "auto"
+    device: str = "cpu"
     flips: int = 1
     energy: bool = True
 
@@ -156,7 +157,7 @@ def denoise_file(cfg: DenoiseFileConfig) -> dict[str, Any]:
         raise DenoiserError("two halves give the variance: --variance-layer is for a single input")
     denoiser = Denoiser(cfg.model, max_memory_mb=cfg.max_memory_mb, skip_below=cfg.skip_below,
                         precision=cfg.precision, flips=cfg.flips,
-                        energy=settings_if(cfg.energy))
+                        energy=settings_if(cfg.energy), device=cfg.device)
     images = [read_input(p, cfg.layer, cfg.variance_layer) for p in cfg.inputs]
     image = images[0] if len(images) == 1 else combine_halves(*images, max_bytes=denoiser.max_bytes)
     ref = read_input(cfg.reference).rgb if cfg.reference else None

@@ -47,7 +47,8 @@ class RenderSettings:
     of the network (:class:`denoise.denoiser.Denoiser`; None: run it everywhere); ``precision``: the
     denoisers' float format (:mod:`denoise.precision`); ``flips``: test-time flips of the networks
     (:mod:`denoise.flips`); ``energy``: match the output's local means to the render's
-    (:mod:`denoise.energy`); the reference is an EXR file or a render at ``reference_spp`` (another seed)."""
+    (:mod:`denoise.energy`); ``device``: where the networks run (:func:`model.device.choose_device`);
+    the reference is an EXR file or a render at ``reference_spp`` (another seed)."""
 
     scene: str
     resolution: tuple[int, int] | None = None
@@ -59,6 +60,7 @@ class RenderSettings:
     precision: str = "auto"
     flips: int = 1
     energy: bool = True
+    device: str = "cpu"
     reference: str | None = None
     reference_spp: int | None = None
 
@@ -80,7 +82,7 @@ def make_denoiser(model: str | Path | Sequence[str | Path] | None, settings: Ren
     correction and, with the halves, skipping."""
     return Denoiser(model, max_memory_mb=settings.max_memory_mb, precision=settings.precision,
                     flips=settings.flips, energy=settings_if(settings.energy),
-                    skip_below=settings.skip_below if settings.noise_guard else None)
+                    skip_below=settings.skip_below if settings.noise_guard else None, device=settings.device)
 
 
 def aovs_for(denoisers: Iterable[Denoiser]) -> tuple[str, ...]:

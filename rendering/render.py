@@ -1,7 +1,7 @@
 """The rendering core: load a prepared scene, render at a given spp/seed, return linear radiance.
 
-Every render goes through :mod:`rendering.scene_io`, so it uses a box pixel filter and a float32
-film. Large sample counts are split into passes (independent seeds) of at most
+Every render goes through :mod:`rendering.scene_io`, so it uses a box pixel filter (or the filter
+the prepared scene names) and a float32 film. Large sample counts are split into passes (independent seeds) of at most
 ``max_samples_per_pass`` samples, whose mean is returned. A film too large for the memory budget
 is rendered in crops (:mod:`rendering.render_crops`), each written straight into the output images.
 """
@@ -20,7 +20,7 @@ import numpy as np
 from rendering.backend import select_variant
 from imaging.errors import RenderError, SceneError
 from rendering.render_crops import Crop, crop_layout, crop_seed, cropped, film_window, max_crop_pixels
-from rendering.scene_io import AOV_TYPES, PreparedScene, prepare_dict, prepare_xml
+from rendering.scene_io import AOV_TYPES, FILTER_CLASSES, PreparedScene, prepare_dict, prepare_xml
 
 DEFAULT_MAX_SAMPLES_PER_PASS = 1 << 24
 DEFAULT_MAX_MEMORY_MB = 1024.0  # the commands' --max-memory-mb default
@@ -77,16 +77,26 @@ def load_scene(prepared: PreparedScene) -> Any:
         resolver.clear()
         for p in saved:
             resolver.append(p)
-    _check_box_filter(scene, prepared.source)
+    _check_filter(scene, prepared.source, prepared.pixel_filter["type"])
     _check_renderable(scene, prepared.source)
     return scene
 
 
-def _check_box_filter(scene: Any, source: str) -> None:
+def _filter_class(sensor: Any) -> str:
+    return str(sensor.film().rfilter()).split("[", 1)[0].strip()
+
+
+def filter_class(scene: Any) -> str:
+    """Class name of the first sensor's pixel filter (``BoxFilter``, ``GaussianFilter``...)."""
+    return _filter_class(scene.sensors()[0])
+
+
+def _check_filter(scene: Any, source: str, kind: str) -> None:
+    expected = FILTER_CLASSES[kind]
     for sensor in scene.sensors():
-        name = str(sensor.film().rfilter()).split("[", 1)[0].strip()
-        if name != "BoxFilter":
-            raise SceneError(f"{source}: film pixel filter is {name}, expected BoxFilter")
+        name = _filter_class(sensor)
+        if name != expected:
+            raise SceneError(f"{source}: film pixel filter is {name}, expected {expected}")
 
 
 def _check_renderable(scene: Any, source: str) -> None:
@@ -105,10 +115,12 @@ def prepare(
     aovs: Sequence[str] = (),
     params: Mapping[str, Any] | None = None,
     base_dir: str | Path | None = None,
+    pixel_filter: str | Mapping[str, Any] | None = None,
 ) -> PreparedScene:
     """Prepare a scene file path or scene dict (see :mod:`rendering.scene_io`).
 
-    ``base_dir`` resolves a dict scene's relative asset paths (XML scenes use their own folder).
+    ``base_dir`` resolves a dict scene's relative asset paths (XML scenes use their own folder);
+    ``pixel_filter``: the films' filter (a box unless named, :func:`rendering.scene_io.pixel_filter_spec`).
     """
     if resolution is not None:
         w, h = resolution
@@ -118,8 +130,8 @@ def prepare(
     if isinstance(scene, Mapping):
         if params:
             raise SceneError("<dict scene>: $parameters apply to XML scene files only")
-        return prepare_dict(scene, resolution, aovs, base_dir=base_dir)
-    return prepare_xml(scene, resolution, aovs, params)
+        return prepare_dict(scene, resolution, aovs, base_dir=base_dir, pixel_filter=pixel_filter)
+    return prepare_xml(scene, resolution, aovs, params, pixel_filter)
 
 
 def zero_nonfinite(img: np.ndarray) -> np.ndarray:
@@ -237,6 +249,9 @@ def render_loaded(
     channels = 3 + 3 * len(aovs)
     _, _, width, height = film_window(scene)
     crops = crop_layout(width, height, max_crop_pixels(channels, halves, max_memory_mb))
+    if len(crops) > 1 and filter_class(scene) != FILTER_CLASSES["box"]:  # its samples spill over crop edges
+        raise RenderError(f"a {width}x{height} film with a {filter_class(scene)} pixel filter does not fit the "
+                          f"memory budget ({max_memory_mb} MB) in one piece, and only a box filter renders in crops")
     outputs = [np.empty((height, width, 3), np.float32) for _ in range(1 + len(aovs))]
     variance = np.empty((height, width, 3), np.float32) if halves else None
     nonfinite = 0

@@ -1,9 +1,11 @@
 """Turn a scene file or dict into Mitsuba XML/dict ready for denoiser-grade rendering.
 
-Every render that feeds the denoiser or serves as its reference needs a *box* pixel filter and a
-float32 film, whatever the scene says: Mitsuba's default gaussian filter correlates neighbouring
-pixels' noise, which a denoiser then cannot remove. Scene files often keep the film in an
-``<include>``d file, so includes are inlined first and every film is rewritten.
+Every render that feeds the denoiser or serves as its reference gets a known pixel filter and a
+float32 film, whatever the scene says: a *box* by default, because Mitsuba's default gaussian filter
+correlates neighbouring pixels' noise, which a box-trained denoiser then cannot remove. A dataset
+made for a studio's own filter names it (``pixel_filter``, :func:`pixel_filter_spec`), and its
+renders and references then use that filter. Scene files often keep the film in an ``<include>``d
+file, so includes are inlined first and every film is rewritten.
 """
 from __future__ import annotations
 
@@ -24,6 +26,63 @@ AOV_TYPES: dict[str, tuple[str, tuple[str, str, str]]] = {
 SENSOR_TYPES = {"perspective", "thinlens", "orthographic", "telecentric", "radiancemeter",
                 "irradiancemeter", "batch", "fisheye"}
 _PARAM_RE = re.compile(r"\$([A-Za-z_][A-Za-z0-9_]*)")
+# Mitsuba 3's pixel filters with their parameters' defaults (mitsuba.readthedocs.io, "Reconstruction
+# filters"), and the class name each loads as. Mitsuba 3 has no Blackman-Harris filter.
+PIXEL_FILTERS: dict[str, dict[str, float]] = {
+    "box": {}, "tent": {}, "gaussian": {"stddev": 0.5}, "mitchell": {"B": 1 / 3, "C": 1 / 3},
+    "catmullrom": {}, "lanczos": {"lobes": 3},
+}
+FILTER_CLASSES = {"box": "BoxFilter", "tent": "TentFilter", "gaussian": "GaussianFilter",
+                  "mitchell": "MitchellNetravaliFilter", "catmullrom": "CatmullRomFilter",
+                  "lanczos": "LanczosSincFilter"}
+_INTEGER_FILTER_PARAMS = {"lobes"}
+BOX = {"type": "box"}
+
+
+def pixel_filter_spec(value: str | Mapping[str, Any] | None) -> dict[str, Any]:
+    """The canonical pixel filter {"type": NAME, PARAM: value, ...} (every parameter present, its
+    default filled in) of ``value``: None or "box"; a name ("gaussian"); "NAME:PARAM=V,..."
+    ("gaussian:stddev=0.3"); or such a dict. Raises :class:`SceneError` naming the valid filters
+    or parameters."""
+    if value is None:
+        return dict(BOX)
+    if isinstance(value, str):
+        name, _, params = value.partition(":")
+        given: dict[str, Any] = {}
+        for item in filter(None, (p.strip() for p in params.split(","))):
+            key, eq, number = item.partition("=")
+            try:
+                given[key.strip()] = float(number) if eq else None
+            except ValueError:
+                given[key.strip()] = None
+            if given[key.strip()] is None:
+                raise SceneError(f"pixel filter {value!r}: expected NAME or NAME:PARAM=NUMBER,..., got {item!r}")
+        value = {"type": name.strip(), **given}
+    if not isinstance(value, Mapping) or value.get("type") not in PIXEL_FILTERS:
+        name = value.get("type") if isinstance(value, Mapping) else value
+        raise SceneError(f"unknown pixel filter {name!r} (valid: {', '.join(PIXEL_FILTERS)})")
+    kind = value["type"]
+    defaults = PIXEL_FILTERS[kind]
+    unknown = sorted(set(value) - {"type"} - set(defaults))
+    if unknown:
+        raise SceneError(f"pixel filter {kind!r} has no parameter {unknown[0]!r} "
+                         f"(it takes: {', '.join(defaults) or 'none'})")
+    spec: dict[str, Any] = {"type": kind}
+    for key, default in defaults.items():
+        number = value.get(key, default)
+        if isinstance(number, bool) or not isinstance(number, (int, float)) or not number > 0:
+            raise SceneError(f"pixel filter {kind!r}: {key} must be a number > 0, got {number!r}")
+        spec[key] = int(number) if key in _INTEGER_FILTER_PARAMS else float(number)
+    return spec
+
+
+def _filter_xml(spec: Mapping[str, Any]) -> ET.Element:
+    element = ET.Element("rfilter", {"type": spec["type"]})
+    for key, value in spec.items():
+        if key != "type":
+            tag = "integer" if key in _INTEGER_FILTER_PARAMS else "float"
+            ET.SubElement(element, tag, {"name": key, "value": str(value)})
+    return element
 
 
 @dataclass
@@ -31,7 +90,8 @@ class PreparedScene:
     """A scene description ready for ``mi.load_string``/``mi.load_dict``.
 
     ``xml`` is set for file scenes (with ``search_paths`` for the file resolver and ``params`` for
-    ``$name`` substitution), ``scene_dict`` for dict scenes. ``source`` names it in messages.
+    ``$name`` substitution), ``scene_dict`` for dict scenes. ``source`` names it in messages;
+    ``pixel_filter`` is the filter its films were given (:func:`pixel_filter_spec`).
     """
 
     source: str
@@ -39,6 +99,7 @@ class PreparedScene:
     scene_dict: dict[str, Any] | None = None
     search_paths: list[Path] = field(default_factory=list)
     params: dict[str, str] = field(default_factory=dict)
+    pixel_filter: dict[str, Any] = field(default_factory=lambda: dict(BOX))
 
 
 def _check_aovs(aovs: Sequence[str]) -> None:
@@ -94,11 +155,11 @@ def _set_property(elem: ET.Element, tag: str, name: str, value: str) -> None:
     ET.SubElement(elem, tag, {"name": name, "value": value})
 
 
-def _fix_film(film: ET.Element, resolution: tuple[int, int] | None) -> None:
+def _fix_film(film: ET.Element, resolution: tuple[int, int] | None, pixel_filter: Mapping[str, Any]) -> None:
     for child in list(film):
         if child.tag == "rfilter":
             film.remove(child)
-    ET.SubElement(film, "rfilter", {"type": "box"})
+    film.append(_filter_xml(pixel_filter))
     _set_property(film, "string", "component_format", "float32")
     _set_property(film, "string", "pixel_format", "rgb")
     if resolution is not None:
@@ -108,7 +169,8 @@ def _fix_film(film: ET.Element, resolution: tuple[int, int] | None) -> None:
         _set_property(film, "integer", "height", str(resolution[1]))
 
 
-def _fix_sensors(root: ET.Element, resolution: tuple[int, int] | None, source: str) -> None:
+def _fix_sensors(root: ET.Element, resolution: tuple[int, int] | None, source: str,
+                 pixel_filter: Mapping[str, Any]) -> None:
     sensors = [e for e in root.iter("sensor")]
     if not sensors:
         raise SceneError(f"{source}: the scene has no <sensor> (a camera is required)")
@@ -117,7 +179,7 @@ def _fix_sensors(root: ET.Element, resolution: tuple[int, int] | None, source: s
         if not films:
             films = [ET.SubElement(sensor, "film", {"type": "hdrfilm"})]
         for film in films:
-            _fix_film(film, resolution)
+            _fix_film(film, resolution, pixel_filter)
 
 
 def _wrap_integrator_xml(root: ET.Element, aovs: Sequence[str]) -> None:
@@ -145,20 +207,23 @@ def prepare_xml(
     resolution: tuple[int, int] | None = None,
     aovs: Sequence[str] = (),
     params: Mapping[str, Any] | None = None,
+    pixel_filter: str | Mapping[str, Any] | None = None,
 ) -> PreparedScene:
-    """Read ``path``, inline its includes, force box filter + float32 film on every sensor.
+    """Read ``path``, inline its includes, force the pixel filter (a box unless ``pixel_filter``
+    names another, :func:`pixel_filter_spec`) + float32 film on every sensor.
 
     ``resolution`` is (width, height) in pixels; ``aovs`` names extra buffers (see AOV_TYPES);
     ``params`` fills ``$name`` parameters, each of which the scene must use.
     """
     _check_aovs(aovs)
+    spec = pixel_filter_spec(pixel_filter)
     path = Path(path)
     root = _parse(path, str(path))
     if root.tag != "scene":
         raise SceneError(f"{path}: root element is <{root.tag}>, expected <scene>")
     scene_dir = path.resolve().parent
     _inline_includes(root, scene_dir, scene_dir, (path.resolve(),))
-    _fix_sensors(root, resolution, str(path))
+    _fix_sensors(root, resolution, str(path), spec)
     _wrap_integrator_xml(root, aovs)
     xml = ET.tostring(root, encoding="unicode")
     known = declared_params(xml) | {d.get("name", "") for d in root.iter("default")}
@@ -168,13 +233,14 @@ def prepare_xml(
             raise SceneError(f"{path}: --param {name!r} is not a parameter of this scene "
                              f"(it declares: {', '.join(sorted(known)) or 'none'})")
     search = sorted({scene_dir} | {p.parent for p in scene_dir.rglob('*.xml')}, key=str)[:16]
-    return PreparedScene(source=str(path), xml=xml, search_paths=search, params=params)
+    return PreparedScene(source=str(path), xml=xml, search_paths=search, params=params, pixel_filter=spec)
 
 
 # ----------------------------------------------------------------------------- dict scenes
-def _box_film(film: dict[str, Any] | None, resolution: tuple[int, int] | None) -> dict[str, Any]:
+def _fixed_film(film: dict[str, Any] | None, resolution: tuple[int, int] | None,
+               pixel_filter: Mapping[str, Any]) -> dict[str, Any]:
     film = dict(film or {"type": "hdrfilm"})
-    film["rfilter"] = {"type": "box"}
+    film["rfilter"] = dict(pixel_filter)
     film["component_format"] = "float32"
     film["pixel_format"] = "rgb"
     if resolution is not None:
@@ -199,12 +265,15 @@ def prepare_dict(
     aovs: Sequence[str] = (),
     source: str = "<dict scene>",
     base_dir: str | Path | None = None,
+    pixel_filter: str | Mapping[str, Any] | None = None,
 ) -> PreparedScene:
-    """Copy a Mitsuba scene dict with box filter + float32 film on every sensor (and AOVs).
+    """Copy a Mitsuba scene dict with the pixel filter (a box unless ``pixel_filter`` names another)
+    + float32 film on every sensor (and AOVs).
 
     Relative asset file names in the dict resolve against ``base_dir`` when given.
     """
     _check_aovs(aovs)
+    spec = pixel_filter_spec(pixel_filter)
     d = _copy_dicts(scene)
     sensors = [k for k, v in d.items() if isinstance(v, dict) and v.get("type") in SENSOR_TYPES]
     if not sensors:
@@ -213,10 +282,10 @@ def prepare_dict(
         d[key] = dict(d[key])
         film_key = next((k for k, v in d[key].items() if isinstance(v, dict)
                          and v.get("type") in ("hdrfilm", "film")), "film")
-        d[key][film_key] = _box_film(d[key].get(film_key), resolution)
+        d[key][film_key] = _fixed_film(d[key].get(film_key), resolution, spec)
     if aovs:
         inner_key = "integrator" if "integrator" in d else None
         inner = d.pop(inner_key) if inner_key else {"type": "path"}
         d["integrator"] = {"type": "aov", "aovs": aov_spec(aovs), "inner": inner}
     search = [Path(base_dir).resolve()] if base_dir is not None else []
-    return PreparedScene(source=source, scene_dict=d, search_paths=search)
+    return PreparedScene(source=source, scene_dict=d, search_paths=search, pixel_filter=spec)

@@ -342,8 +342,8 @@ def test_train_bad_dataset(dataset: Path, tmp_path: Path, capfd: pytest.CaptureF
                            needles: list[str]) -> None:
     data = _broken_copy(dataset, tmp_path, how)
     run = tmp_path / "run"
-    rc = call(train_main, ["--data", str(data), "--out", str(run), "--preset", "fast", "--steps", "1",
-                           "--no-progress"])
+    rc = call(train_main, ["--data", str(data), "--out", str(run), "--preset", "flat-s", "--steps", "1",
+                           "--patch", "28", "--no-progress"])
     line = one_line(capfd, rc, *needles)
     assert line.startswith("train: error: ")
     assert not (run / "last.ckpt").exists()
@@ -375,8 +375,8 @@ def test_train_resume_from_bad_checkpoint(files: Path, tmp_path: Path, capfd: py
 
 
 def _tiny_train(dataset: Path, run: Path, *extra: str) -> list[str]:
-    return ["--data", str(dataset), "--out", str(run), "--preset", "fast", "--steps", "2", "--batch", "2",
-            "--val-every", "0", "--no-progress", "--no-oidn", *extra]
+    return ["--data", str(dataset), "--out", str(run), "--preset", "flat-s", "--steps", "2", "--batch", "2",
+            "--patch", "28", "--val-every", "0", "--no-progress", "--no-oidn", *extra]
 
 
 def test_train_output_not_writable(dataset: Path, readonly_dir: Path, capfd: pytest.CaptureFixture) -> None:

@@ -74,7 +74,7 @@ def keep_threads() -> Iterator[None]:
 def test_kill_9_during_train_then_resume_matches_a_straight_run(tmp_path: Path, keep_threads: None) -> None:
     data = write_synthetic_dataset(tmp_path / "ds", scenes=2, res=(32, 32), spp=(4,), val_scenes=())
     config = tmp_path / "config.json"
-    config.write_text(json.dumps({"model": {"layers": 2, "growth": 4, "init_features": 8}, "batch": 4,
+    config.write_text(json.dumps({"model": {"layers": 2, "growth": 4, "init_features": 8}, "patch": {"size": 28}, "batch": 4,
                                   "log_every": 1, "ckpt_every": 1, "val_every": 0, "progress": False,
                                   "threads": 1, "prefetch": True}))
     killed, straight = tmp_path / "killed", tmp_path / "straight"

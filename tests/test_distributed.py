@@ -22,13 +22,13 @@ from imaging.errors import ConfigError
 from model.checkpoint import read_checkpoint
 from training.cli import build_parser, main, resume_command
 from training.distributed import RankInfo, ShardSource, available_cpus, choose_threads, ddp_config, rank_from_env
-from training.patches import TrainingPair
+from training.batches import BatchSource
+from training.patches import PatchConfig, TrainingPair
 from training.synthetic import write_synthetic_dataset
-from training.train import BatchSource
 from training.train_config import TrainConfig
 
-TINY = {"model": {"layers": 2, "growth": 4, "init_features": 8}, "batch": 8, "val_every": 0, "progress": False,
-        "threads": 1}
+TINY = {"model": {"layers": 2, "growth": 4, "init_features": 8}, "patch": {"size": 28}, "batch": 8, "val_every": 0,
+        "progress": False, "threads": 1}
 # Measured (2-core x86, torch 2.13): weights and Adam moments bit-identical to the 1-process run
 # (halving and a 2-term sum are exact either way), BatchNorm running statistics within 2.4e-7
 # (merged in float64 vs updated chunk by chunk in float32). The tolerances leave room for other
@@ -125,7 +125,7 @@ def test_rank_from_env() -> None:
 def test_shards_cut_the_single_process_batch(rng: np.random.Generator) -> None:
     pairs = [TrainingPair(rng.random((32, 32, 3), dtype=np.float32), rng.random((32, 32, 3), dtype=np.float32),
                          0, 4)]
-    config = TrainConfig(data="d", out="o", batch=8, prefetch=False)
+    config = TrainConfig(data="d", out="o", batch=8, prefetch=False, patch=PatchConfig(size=28))
     whole = BatchSource(pairs, config).get(5)
     halves = [ShardSource(pairs, config, slice(r * 4, r * 4 + 4)).get(5) for r in (0, 1)]
     for i in (0, 1):  # noisy, ref
@@ -212,7 +212,7 @@ def _run_hint(stderr_line: str) -> subprocess.CompletedProcess:
 
 def test_resume_command_keeps_what_the_checkpoint_does_not_hold() -> None:
     parser = build_parser()
-    args = parser.parse_args(["--data", "d", "--out", "runs/a b", "--config", "c.json", "--preset=fast", "--lr", "0.1",
+    args = parser.parse_args(["--data", "d", "--out", "runs/a b", "--config", "c.json", "--preset=flat-s", "--lr", "0.1",
                               "--steps", "40", "--batch", "64", "--micro-batch", "4", "--nproc=2", "--threads", "1",
                               "--no-progress", "--ckpt-every", "10"])
     hint = resume_command(parser, args)
@@ -228,7 +228,7 @@ def test_resume_command_keeps_what_the_checkpoint_does_not_hold() -> None:
 def test_hinted_command_resumes_a_ddp_run_started_with_preset_and_config(dataset: Path, tmp_path: Path) -> None:
     run = tmp_path / "run"
     cfg = _config(tmp_path, ckpt_every=2, log_every=2, micro_batch=4)
-    proc = _start("--data", str(dataset), "--out", str(run), "--config", cfg, "--preset", "fast", "--steps", "200",
+    proc = _start("--data", str(dataset), "--out", str(run), "--config", cfg, "--preset", "flat-s", "--steps", "200",
                   "--nproc", "2", "--no-progress")
     try:
         deadline = time.time() + TIMEOUT_S
@@ -257,7 +257,7 @@ def test_hinted_command_resumes_an_interrupted_run(dataset: Path, tmp_path: Path
     cfg = _config(tmp_path, ckpt_every=2, log_every=2)
     # SIGINT at its default in the child: a runner started in the background (nohup, `cmd &`)
     # ignores SIGINT, its children inherit that, and Python then never raises KeyboardInterrupt
-    proc = _start("--data", str(dataset), "--out", str(run), "--config", cfg, "--preset", "fast", "--steps", "200",
+    proc = _start("--data", str(dataset), "--out", str(run), "--config", cfg, "--preset", "flat-s", "--steps", "200",
                   preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         deadline = time.time() + TIMEOUT_S

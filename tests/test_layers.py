@@ -5,7 +5,7 @@ Every import of every .py file of the packages is read with ``ast`` (function-le
 (``imaging``; ``console`` above it) uses nothing else of ours; ``rendering`` uses ``imaging``;
 ``scenes`` and ``dataset_gen`` build on rendering; ``model`` (networks, checkpoints, registry) uses
 ``imaging`` only; ``denoise`` (the engine) uses ``model``; ``training`` uses ``denoise`` (validation
-runs the users' chain); ``pipeline`` is the application and uses all of them; nothing imports
+runs the users' chain) and ``dataset_gen`` and ``scenes`` (a recipe renders its data); ``pipeline`` is the application and uses all of them; nothing imports
 ``pipeline`` or ``benchmarks`` but themselves (and the tests).
 """
 from __future__ import annotations
@@ -27,7 +27,7 @@ ALLOWED = {
     "dataset_gen": FOUNDATION | {"rendering", "scenes", "dataset_gen"},
     "model": {"imaging", "model"},
     "denoise": {"imaging", "rendering", "model", "denoise"},
-    "training": FOUNDATION | {"rendering", "model", "denoise", "training"},
+    "training": FOUNDATION | {"rendering", "scenes", "dataset_gen", "model", "denoise", "training"},
     "pipeline": set(PACKAGES) - {"benchmarks"},
     "benchmarks": set(PACKAGES),
 }

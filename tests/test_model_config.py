@@ -9,12 +9,12 @@ from model.config import PRESETS, ModelConfig, preset
 from model.network import densenet_params
 
 # Documented in model/config.py; changing an architecture detail must update both.
-EXPECTED_PARAMS = {"fast": 51_232, "balanced": 122_112, "high": 220_192, "paper": 261_888}
+EXPECTED_PARAMS = {"flat-s": 51_232, "flat-m": 122_112, "flat-l": 220_192, "paper": 261_888}
 
 
 def test_presets_exist_and_grow() -> None:
-    assert {"fast", "balanced", "high"} <= set(PRESETS)
-    counts = [densenet_params(PRESETS[n]) for n in ("fast", "balanced", "high")]
+    assert {"flat-s", "flat-m", "flat-l"} <= set(PRESETS)
+    counts = [densenet_params(PRESETS[n]) for n in ("flat-s", "flat-m", "flat-l")]
     assert counts == sorted(counts)
 
 
@@ -33,7 +33,7 @@ def test_plaincnn_matches_densenet_within_5_percent(name: str, aux: bool) -> Non
 
 
 def test_round_trip_dict() -> None:
-    config = preset("fast", arch="plaincnn", transfer="pu", output="direct", aux_inputs=True)
+    config = preset("flat-s", arch="plaincnn", transfer="pu", output="direct", aux_inputs=True)
     assert ModelConfig.from_dict(config.to_dict()) == config
 
 

@@ -93,7 +93,8 @@ def test_train_init_from_starts_at_the_source(tmp_path: Path, capsys: pytest.Cap
     config.write_text(json.dumps({"model": {**SMALL.to_dict(), "layers": 4}}))
     run = tmp_path / "run"
     rc = main(["--data", str(data), "--out", str(run), "--config", str(config), "--init-from", str(source),
-               "--steps", "2", "--batch", "4", "--lr", "1e-4", "--lr-decay", "0.5", "--lr-decay-every", "1", "--lr-warmup", "2",
+               "--steps", "2", "--batch", "4", "--patch", "28", "--lr", "1e-4", "--lr-cosine-steps", "0",
+               "--lr-decay", "0.5", "--lr-decay-every", "1", "--lr-warmup", "2",
                "--val-every", "0", "--log-every", "1", "--converged-pairs", "--no-progress"])
     assert rc == 0, capsys.readouterr().err
     model, cfg, meta = load_model(run / "last.ckpt")
@@ -113,8 +114,8 @@ def test_train_init_from_an_incompatible_checkpoint_is_one_line(tmp_path: Path,
     data = write_synthetic_dataset(tmp_path / "ds", scenes=1, res=(32, 32), spp=(4,), val_scenes=())
     source = tmp_path / "source.ckpt"
     save_checkpoint(source, build_model(SMALL), step=1)
-    rc = main(["--data", str(data), "--out", str(tmp_path / "run"), "--preset", "fast",
-               "--init-from", str(source), "--steps", "1", "--no-progress"])
+    rc = main(["--data", str(data), "--out", str(tmp_path / "run"), "--preset", "flat-s",
+               "--init-from", str(source), "--steps", "1", "--patch", "28", "--val-every", "0", "--no-progress"])
     err = capsys.readouterr().err
     assert rc == 1 and len(err.strip().splitlines()) == 1 and "cannot grow" in err and str(source) in err
 

@@ -211,8 +211,8 @@ print(json.dumps({"scratch_mb": (status("VmHWM") - start - out.nbytes) / 2**20, 
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("preset,setting,budget", [("fast", "folded", 128), ("fast", "module", 128),
-                                                   ("balanced", "folded", 256), ("u-fast", "folded", 256)])
+@pytest.mark.parametrize("preset,setting,budget", [("flat-s", "folded", 128), ("flat-s", "module", 128),
+                                                   ("flat-m", "folded", 256), ("unet-s", "folded", 256)])
 def test_a_tile_planned_under_a_budget_stays_under_it(tmp_path: Path, preset: str, setting: str,
                                                       budget: float) -> None:
     """One window as large as the Denoiser plans under ``budget`` MB, denoised in a fresh process

@@ -12,6 +12,7 @@ import training.step
 from model.checkpoint import load_model, read_checkpoint
 from training.cli import main
 from training.synthetic import write_synthetic_dataset
+from training.train_config import TrainConfig
 
 TINY_MODEL = {"layers": 2, "growth": 4, "init_features": 8}
 
@@ -23,8 +24,10 @@ def dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def _config(tmp_path: Path, **fields: object) -> str:
+    """A config file of ``fields``, with 28-px crops (the tiny datasets' images are 32 px, under the
+    default crop) and the step schedule without warm-up (a few steps at full LR) unless they say."""
     path = tmp_path / f"config{len(list(tmp_path.glob('config*')))}.json"
-    path.write_text(json.dumps(fields))
+    path.write_text(json.dumps({"patch": {"size": 28}, "lr_warmup": 0, "lr_cosine_steps": 0, **fields}))
     return str(path)
 
 
@@ -34,8 +37,8 @@ def _log(run: Path) -> list[dict]:
 
 def test_end_to_end_small_preset(dataset: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     run = tmp_path / "run"
-    rc = main(["--data", str(dataset), "--out", str(run), "--preset", "fast", "--steps", "12", "--batch", "8",
-               "--log-every", "3", "--val-every", "6", "--ckpt-every", "6", "--no-progress"])
+    rc = main(["--data", str(dataset), "--out", str(run), "--preset", "flat-s", "--steps", "12", "--batch", "8",
+               "--patch", "28", "--log-every", "3", "--val-every", "6", "--ckpt-every", "6", "--no-progress"])
     assert rc == 0, capsys.readouterr().err
     assert "trained to step 12" in capsys.readouterr().out
     for name in ("last.ckpt", "best.ckpt", "log.jsonl", "curves.png", "train_config.json"):
@@ -43,7 +46,9 @@ def test_end_to_end_small_preset(dataset: Path, tmp_path: Path, capsys: pytest.C
     assert (run / "curves.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     log = _log(run)
     assert [r["step"] for r in log if r["type"] == "train"] == [3, 6, 9, 12]
-    assert all(r["loss"] > 0 and r["lr"] == 0.01 for r in log if r["type"] == "train")
+    schedule = TrainConfig(data="-", out="-", steps=12)  # the default: warm-up, then a cosine over the run
+    assert all(r["loss"] > 0 and r["lr"] == pytest.approx(schedule.lr_at(r["step"] - 1))
+               for r in log if r["type"] == "train")
     vals = [r for r in log if r["type"] == "val"]
     assert [r["step"] for r in vals] == [6, 12]
     per_spp = vals[-1]["per_spp"]
@@ -115,8 +120,8 @@ def test_unknown_loss_choice_in_a_config_file(dataset: Path, tmp_path: Path, cap
 
 
 def test_resume_continues_exactly(dataset: Path, tmp_path: Path) -> None:
-    cfg = _config(tmp_path, model=TINY_MODEL, batch=4, lr_decay_every=3, log_every=2, ckpt_every=2,
-                  val_every=0, progress=False)
+    cfg = _config(tmp_path, model=TINY_MODEL, batch=4, lr=0.01, lr_warmup=0, lr_cosine_steps=0, lr_decay_every=3,
+                  log_every=2, ckpt_every=2, val_every=0, progress=False)
     straight, split = tmp_path / "straight", tmp_path / "split"
     assert main(["--data", str(dataset), "--out", str(straight), "--config", cfg, "--steps", "8"]) == 0
     assert main(["--data", str(dataset), "--out", str(split), "--config", cfg, "--steps", "5"]) == 0
@@ -168,10 +173,10 @@ def test_nan_losses_stop_training_without_poisoning(dataset: Path, tmp_path: Pat
     (["--data", "{missing}", "--out", "{tmp}/r"], "dataset.json: not found"),
     (["--out", "{tmp}/r"], "--data is required for a new run"),
     (["--out", "{tmp}/r", "--resume"], "last.ckpt: checkpoint not found"),
-    (["--out", "{tmp}/r", "--resume", "--preset", "fast"], "--preset cannot be combined with --resume"),
+    (["--out", "{tmp}/r", "--resume", "--preset", "flat-s"], "--preset cannot be combined with --resume"),
     (["--out", "{tmp}/r", "--resume", "--detail-crops", "0.5"], "--detail-crops cannot be combined with --resume"),
     (["--data", "{data}", "--out", "{tmp}/r", "--detail-crops", "2"], "patch detail must be in [0, 1]"),
-    (["--data", "{data}", "--out", "{tmp}/no/such/r"], "output parent folder does not exist"),
+    (["--data", "{data}", "--out", "{data}/dataset.json"], "dataset.json: exists and is not a folder"),
     (["--data", "{data}", "--out", "{tmp}/r", "--steps", "0"], "steps must be a positive integer"),
     (["--data", "{data}", "--out", "{tmp}/r", "--log-loss-eps", "-1"], "log_loss_eps must be in [0, 1]"),
     (["--data", "{data}", "--out", "{tmp}/r", "--ms-ssim-weight", "2"], "ms_ssim_weight must be in [0, 1]"),
@@ -201,7 +206,7 @@ def test_cli_usage_error_exit_2(capsys: pytest.CaptureFixture) -> None:
         main(["--out", "x", "--preset", "giant"])
     assert exc.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "invalid choice: 'giant'" in err[0]
+    assert len(err) == 1 and "unknown model preset 'giant' (valid: flat-s, flat-m, flat-l, paper, unet-s" in err[0]
 
 
 def test_aux_model_end_to_end(tmp_path: Path) -> None:
@@ -240,13 +245,13 @@ def test_resume_refuses_a_dataset_that_grew_or_shrank(tmp_path: Path, capsys: py
 
 def test_aux_model_refuses_dataset_without_aux(dataset: Path, tmp_path: Path,
                                                capsys: pytest.CaptureFixture) -> None:
-    assert main(["--data", str(dataset), "--out", str(tmp_path / "run"), "--preset", "fast", "--aux"]) == 1
+    assert main(["--data", str(dataset), "--out", str(tmp_path / "run"), "--preset", "flat-s", "--aux"]) == 1
     assert "the model needs albedo/normal" in capsys.readouterr().err
 
 
 def test_config_precedence_defaults_file_flags(tmp_path: Path) -> None:
     from training.cli import build_parser, config_from_args
-    cfg = _config(tmp_path, model={"preset": "fast", "transfer": "pu"}, batch=16, lr=0.002)
+    cfg = _config(tmp_path, model={"preset": "flat-s", "transfer": "pu"}, batch=16, lr=0.002)
     args = build_parser().parse_args(["--data", "d", "--out", "o", "--config", cfg, "--lr", "0.005",
                                       "--output", "direct", "--patch", "24"])
     config, resume = config_from_args(args)
@@ -262,7 +267,7 @@ def test_cpu_budget_stops_the_run_validated_and_saved(tmp_path: Path, dataset: P
     from model.checkpoint import read_checkpoint
 
     out = tmp_path / "run"
-    code = main(["--data", str(dataset), "--out", str(out), "--preset", "fast", "--steps", "100000",
+    code = main(["--data", str(dataset), "--out", str(out), "--preset", "flat-s", "--steps", "100000",
                      "--batch", "2", "--patch", "16", "--cpu-minutes", "0.02", "--val-every", "1000",
                      "--log-every", "1000", "--no-progress", "--no-oidn", "--threads", "1"])
     assert code == 0

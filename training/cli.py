@@ -1,13 +1,17 @@
 """Command-line entry point ``train``: parse flags, build a :class:`TrainConfig`, call the library.
 
-    train --data DIR --out RUN_DIR [--config FILE.json] [--preset fast|balanced|high|paper] [--steps N] ...
+    train --recipe NAME --out DIR                  a shipped model from nothing (training/recipes/NAME.toml)
+    train --recipe NAME --out DIR --data MINE --init-from MODEL --minutes M     fine-tune MODEL on your data
+    train --data DIR --out RUN_DIR [--config FILE.json] [--preset flat-s|...|unet-m|unet-l] [--steps N] ...
     train --out RUN_DIR --resume [--steps N]
     train --nproc N ...     (DDP on N local processes via torchrun; or: torchrun ... -m training.cli ...)
 
-Precedence for a new run: defaults < ``--config`` JSON (any TrainConfig fields; ``"model"`` may be
-a full ModelConfig object or ``{"preset": "fast", ...overrides}``) < flags. On ``--resume`` the
-config comes from RUN_DIR/last.ckpt and only run-control flags (steps, intervals, speed options,
-data path) may be given. Errors: one line on stderr, exit 1 (2 for bad usage, 130 on Ctrl-C).
+Precedence for a new run: defaults (the default model's training, :mod:`training.train_config`) <
+``--config`` JSON (any TrainConfig fields; ``"model"`` may be a full ModelConfig object or
+``{"preset": "flat-s", ...overrides}``) < flags. On ``--resume`` the config comes from
+RUN_DIR/last.ckpt and only run-control flags (steps, intervals, speed options, device, data path)
+may be given. ``--recipe`` runs :mod:`training.recipe_run` and takes only run control. Errors: one
+line on stderr, exit 1 (2 for bad usage, 130 on Ctrl-C).
 """
 from __future__ import annotations
 
@@ -22,8 +26,11 @@ from typing import Any
 from imaging.errors import ConfigError, DenoiserError
 from console.progress import tqdm_bars
 from console.usage import OneLineParser
-from model.config import ARCHS, PRESETS, ModelConfig, preset
+from model.config import ARCHS, PRESETS, UNET_ARCHS, ModelConfig, preset
+from model.device import DEVICES
 from training.distributed import RankInfo, ddp_config, launch, rank_from_env, train_distributed
+from training.recipe import load_recipe, recipe_names
+from training.recipe_run import RecipeRun, plan, run_recipe
 from training.train import resume_config, train
 from training.train_config import LOSS_NORMS, LOSS_SPACES, RESUMABLE_OVERRIDES, TrainConfig
 
@@ -38,24 +45,60 @@ _FLAGS = {  # argparse dest -> TrainConfig field
     "noise_dropout": "noise_dropout", "gradient_weight": "gradient_weight", "max_scenes": "max_scenes",
     "max_spp": "max_spp", "min_spp": "min_spp",
     "log_loss_eps": "log_loss_eps", "ms_ssim_weight": "ms_ssim_weight",
-    "loss_norm": "loss_norm", "loss_space": "loss_space",
+    "loss_norm": "loss_norm", "loss_space": "loss_space", "device": "device", "workers": "workers",
 }
+# flags a --recipe run takes (run control); the recipe sets everything else
+_RECIPE_FLAGS = {"recipe", "out", "data", "extra_data", "init_from", "minutes", "device", "threads", "workers",
+                 "progress", "data_root", "dry_run"}
+_DEFAULTS = TrainConfig(data="-", out="-")
+
+
+def _preset_name(text: str) -> str:
+    try:
+        preset(text)
+    except ConfigError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    return text
 _MODEL_FLAGS = ("arch", "transfer", "output", "aux_inputs", "noise_input", "noise_radius", "levels", "layers",
                 "growth", "init_features", "head", "kernel")
 
 
 def build_parser() -> argparse.ArgumentParser:
     """The ``train`` argument parser (every option defaults to None = not given)."""
+    d = _DEFAULTS
     p = OneLineParser(prog="train",
-                      description="Train the Kim & Lee densely connected MC denoiser on the CPU.",
+                      description="Train a denoiser: a shipped model from its recipe (--recipe), a fine-tune of one "
+                                  "on your data, or any network on a dataset. Without --recipe the defaults are "
+                                  "the training of the default model's U-Net (recipe unet-m-k5-lowspp's stage: "
+                                  f"unet-m with a 5x5 filter, {d.patch.size}px crops, batch {d.batch}, lr {d.lr:g} "
+                                  f"with {d.lr_warmup} warm-up steps and a cosine to {d.lr_final:g} of it over the "
+                                  f"run, {d.steps} steps).",
                       argument_default=None)
-    p.add_argument("--data", help="dataset folder (dataset.json, manifest.jsonl, images/)")
-    p.add_argument("--out", required=True, help="run folder (checkpoints, log.jsonl, curves.png)")
+    p.add_argument("--recipe", metavar="NAME",
+                   help=f"run a recipe from nothing (render its data, train its stages, resume after a kill): "
+                        f"{', '.join(recipe_names())}, or a .toml file")
+    p.add_argument("--data-root", metavar="DIR",
+                   help="--recipe: where its datasets are rendered, one folder each (default data)")
+    p.add_argument("--dry-run", action="store_true", default=False,
+                   help="--recipe: print the commands it amounts to; render and train nothing")
+    p.add_argument("--data", help="dataset folder (dataset.json, manifest.jsonl, images/); with --recipe: train "
+                                  "on it instead of the recipe's data")
+    p.add_argument("--out", required=True, help="run folder (created with its parents: checkpoints, log.jsonl, "
+                                                "curves.png)")
     p.add_argument("--config", help="JSON file with TrainConfig fields")
     p.add_argument("--resume", action="store_true", default=False, help="continue the run in --out")
-    p.add_argument("--steps", type=int, help="total optimiser steps (default 100000)")
-    p.add_argument("--preset", choices=sorted(PRESETS), help="model size preset (default paper)")
-    p.add_argument("--arch", choices=list(ARCHS))
+    p.add_argument("--steps", type=int, help=f"total optimiser steps (default {d.steps})")
+    p.add_argument("--minutes", type=float,
+                   help="stop after this many minutes of wall time, saved and resumable (--resume, or the same "
+                        "--recipe command)")
+    p.add_argument("--device", choices=DEVICES, help="where to train: auto (default: cuda when present), cpu, cuda")
+    p.add_argument("--workers", type=int,
+                   help="processes preparing batches ahead (default 0: a thread on the CPU, up to 8 processes "
+                        "on a GPU)")
+    p.add_argument("--preset", type=_preset_name, metavar="NAME",
+                   help=f"network preset: {', '.join(PRESETS)} (default: unet-m with --kernel 5)")
+    p.add_argument("--arch", choices=list(ARCHS),
+                   help="network family (without --preset, a flat arch starts from the paper preset's sizes)")
     p.add_argument("--levels", type=int, help="multi-scale archs: resolutions below the half-resolution stem")
     p.add_argument("--head", type=int,
                    help="multi-scale archs: channels of a full-resolution refinement head (0: none)")
@@ -75,24 +118,26 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--transfer", choices=["log", "pu"])
     p.add_argument("--output", choices=["residual", "direct"])
     p.add_argument("--aux", dest="aux_inputs", action="store_const", const=True, help="also feed albedo+normal")
-    p.add_argument("--batch", type=int, help="patches per step (default 64)")
-    p.add_argument("--patch", type=int, help="patch side in pixels (default 28)")
+    p.add_argument("--batch", type=int, help=f"patches per step (default {d.batch})")
+    p.add_argument("--patch", type=int, help=f"patch side in pixels (default {d.patch.size})")
     p.add_argument("--detail-crops", type=float, metavar="D",
                    help="choose crops by the reference's variation: share D of the probability goes by each "
                         "crop's standard deviation, among 4x the batch of candidates (default 0: uniform)")
-    p.add_argument("--lr", type=float, help="Adam base learning rate (default 0.01)")
+    p.add_argument("--lr", type=float, help=f"Adam base learning rate (default {d.lr:g})")
     p.add_argument("--grad-clip", type=float, help="clip the gradient L2 norm to this (default off)")
     p.add_argument("--init-from", metavar="CKPT",
-                   help="start from this checkpoint's weights: the same model (a warm start), or a "
-                        "densenet of other depth (deepened to the model's layers, or its first layers)")
+                   help="start from this checkpoint's weights (a file, or a shipped model's name: the same model "
+                        "(a warm start), or a densenet of other depth (deepened to the model's layers, or its "
+                        "first layers); with --recipe and --data: fine-tune it on that data")
     p.add_argument("--converged-pairs", action="store_const", const=True,
                    help="also train on (reference, reference) pairs: converged input stays unchanged")
     p.add_argument("--lr-decay", type=float, help="LR factor per --lr-decay-every steps (default 0.9)")
-    p.add_argument("--lr-warmup", type=int, help="steps of linear LR warm-up (default 0)")
+    p.add_argument("--lr-warmup", type=int, help=f"steps of linear LR warm-up (default {d.lr_warmup})")
     p.add_argument("--lr-decay-every", type=int, help="steps per LR decay (default 10000)")
     p.add_argument("--lr-cosine-steps", type=int,
-                   help="cosine LR decay over this many steps instead of the step schedule")
-    p.add_argument("--lr-final", type=float, help="LR at the end of the cosine, as a share of --lr (0.01)")
+                   help="cosine LR decay over this many steps (default: over --steps; 0: the step schedule of "
+                        "--lr-decay)")
+    p.add_argument("--lr-final", type=float, help=f"LR at the end of the cosine, as a share of --lr ({d.lr_final:g})")
     p.add_argument("--gradient-weight", type=float,
                    help="share of the gradient L1 in the loss (default 0.1, the paper's; 0 = plain L1)")
     p.add_argument("--log-loss-eps", type=float,
@@ -148,16 +193,37 @@ def _read_json(path: str) -> dict[str, Any]:
 def _model_config(base: Any, args: argparse.Namespace) -> ModelConfig:
     if isinstance(base, dict) and "preset" in base:
         base = dataclasses.asdict(preset(base["preset"], **{k: v for k, v in base.items() if k != "preset"}))
-    model = ModelConfig.from_dict(base) if isinstance(base, dict) else PRESETS["paper"]
+    model = ModelConfig.from_dict(base) if isinstance(base, dict) else _DEFAULTS.model
     if args.preset:
         model = PRESETS[args.preset]
     changes = {k: getattr(args, k) for k in _MODEL_FLAGS if getattr(args, k) is not None}
+    if model is _DEFAULTS.model and "arch" in changes and changes["arch"] not in UNET_ARCHS:
+        model = PRESETS["paper"]  # a flat network asked of the default U-Net: the paper's sizes
+    if model.kernel and "kernel" not in changes and (changes.get("arch", model.arch) not in UNET_ARCHS
+                                                      or changes.get("head") or changes.get("output") == "direct"):
+        changes["kernel"] = 0  # the default network's filter, where the flags ask for a network without one
     return dataclasses.replace(model, **changes)
+
+
+def shipped_checkpoint(name: str) -> str:
+    """The checkpoint file of ``--init-from NAME``: NAME itself when it is a file, else the shipped
+    model of that name (model/weights/NAME.ckpt). Raises :class:`ConfigError` listing them."""
+    from denoise.denoiser import WEIGHTS_DIR
+
+    if Path(name).is_file():
+        return name
+    path = WEIGHTS_DIR / f"{name}.ckpt"
+    if path.is_file():
+        return str(path)
+    shipped = sorted(p.stem for p in WEIGHTS_DIR.glob("*.ckpt"))
+    raise ConfigError(f"--init-from {name}: no such checkpoint file or shipped model (shipped: {', '.join(shipped)})")
 
 
 def config_from_args(args: argparse.Namespace) -> tuple[TrainConfig, bool]:
     """(TrainConfig, resume?) from parsed flags; raises :class:`ConfigError` on conflicts."""
     flags = {field: getattr(args, dest) for dest, field in _FLAGS.items() if getattr(args, dest) is not None}
+    if args.init_from is not None:
+        flags["init_from"] = shipped_checkpoint(args.init_from)
     if args.extra_data is not None:
         flags["extra_data"] = tuple(args.extra_data)
     if args.cpu_minutes is not None:
@@ -175,9 +241,9 @@ def config_from_args(args: argparse.Namespace) -> tuple[TrainConfig, bool]:
     data.update(flags, out=args.out)
     data["model"] = _model_config(data.get("model"), args)
     if args.patch is not None:
-        data["patch"] = dict(data.get("patch") or {}, size=args.patch)
+        data["patch"] = dict(data.get("patch") or dataclasses.asdict(_DEFAULTS.patch), size=args.patch)
     if args.detail_crops is not None:
-        data["patch"] = dict(data.get("patch") or {}, detail=args.detail_crops)
+        data["patch"] = dict(data.get("patch") or dataclasses.asdict(_DEFAULTS.patch), detail=args.detail_crops)
     if "data" not in data:
         raise ConfigError("--data is required for a new run")
     return TrainConfig.from_dict(data), False
@@ -210,10 +276,55 @@ def _resume_hint(parser: argparse.ArgumentParser, args: argparse.Namespace, rank
     return resume_command(parser, args, launcher="torchrun <the same torchrun options> -m training.cli")
 
 
+def recipe_run_from_args(args: argparse.Namespace) -> RecipeRun:
+    """The :class:`RecipeRun` of a ``--recipe`` command; raises :class:`ConfigError` for a flag the
+    recipe sets."""
+    given = sorted(f"--{dest.replace('_', '-')}" for dest, value in vars(args).items()
+                   if dest not in _RECIPE_FLAGS and value not in (None, False))
+    if given:
+        raise ConfigError(f"{', '.join(given)} cannot be combined with --recipe (the recipe sets it; run control "
+                          "only: --data, --init-from, --minutes, --device, --threads, --workers, --data-root)")
+    if args.extra_data and not args.data:
+        raise ConfigError("--extra-data with --recipe needs --data (the recipe's own datasets are named in it)")
+    control = {field: getattr(args, dest) for dest, field in _FLAGS.items()
+               if dest in _RECIPE_FLAGS and dest not in ("data", "init_from") and getattr(args, dest) is not None}
+    return RecipeRun(out=Path(args.out), data_root=Path(args.data_root or "data"),
+                     data=tuple([args.data, *(args.extra_data or [])]) if args.data else (),
+                     init_from=shipped_checkpoint(args.init_from) if args.init_from else None,
+                     minutes=args.minutes, control=control)
+
+
+def recipe_main(parser: OneLineParser, args: argparse.Namespace) -> int:
+    """``train --recipe``: run it (or print its plan with ``--dry-run``)."""
+    try:
+        recipe = load_recipe(args.recipe)
+        run = recipe_run_from_args(args)
+        if args.dry_run:
+            print("\n".join(plan(recipe, run)))
+            return 0
+        enabled = run.control.get("progress", True)
+        result = run_recipe(recipe, run, tqdm_bars("step", enabled=enabled), tqdm_bars("scene", enabled=enabled),
+                            log=lambda line: print(f"train: {line}", flush=True))
+    except (DenoiserError, OSError) as exc:
+        return parser.fail(exc)
+    except KeyboardInterrupt:
+        return parser.interrupted("; run the same command again to resume")
+    if result.model is None:
+        print(f"stopped in stage {result.stopped_in} after --minutes {args.minutes:g}; run the same command "
+              f"again to continue")
+    else:
+        print(f"recipe {recipe.name} done: {result.model}")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point: returns the process exit code."""
     parser = build_parser()
     args = parser.parse_args(argv)
+    if args.recipe is not None:
+        return recipe_main(parser, args)
+    if args.dry_run or args.data_root is not None:
+        parser.error("--dry-run and --data-root go with --recipe")
     rank: RankInfo | None = None
     try:
         rank = rank_from_env()
@@ -232,7 +343,7 @@ def main(argv: list[str] | None = None) -> int:
         if rank is not None and rank.world > 1:
             result = train_distributed(config, rank, resume=resume, progress=progress, resume_hint=hint)
         else:
-            result = train(config, resume=resume, progress=progress)
+            result = train(config, resume=resume, progress=progress, minutes=args.minutes)
     except (DenoiserError, OSError) as exc:
         tag = f"rank {rank.rank}: " if rank is not None and rank.world > 1 and "rank " not in str(exc) else ""
         return parser.fail(exc, tag)
@@ -242,7 +353,8 @@ def main(argv: list[str] | None = None) -> int:
     if rank is not None and not rank.primary:
         return 0
     best = f"{result.best_psnr:.2f} dB" if result.best_psnr is not None else "n/a"
-    print(f"trained to step {result.step} (best val PSNR {best}, {result.skipped_steps} skipped steps); "
+    stopped = f", stopped by the {result.stopped} (resume with: {hint})" if result.stopped else ""
+    print(f"trained to step {result.step} (best val PSNR {best}, {result.skipped_steps} skipped steps{stopped}); "
           f"run in {result.run_dir}")
     return 0
 

@@ -56,9 +56,11 @@ from torch import nn
 from imaging.errors import CheckpointError, ConfigError, TrainingError
 from console.progress import ProgressFactory
 from model.checkpoint import Checkpoint, read_checkpoint
+from model.device import choose_device
 from training.patches import TrainingPair
 from training.run_log import RunLog
-from training.train import BatchSource, TrainResult, _Run, run_training
+from training.batches import BatchSource, available_cpus
+from training.train import TrainResult, _Run, run_training
 from training.train_config import TrainConfig
 
 BACKEND = "gloo"
@@ -92,14 +94,6 @@ def rank_from_env(env: dict[str, str] | None = None) -> RankInfo | None:
                           f"WORLD_SIZE={env['WORLD_SIZE']!r})") from None
 
 
-def available_cpus() -> int:
-    """Cores this process may run on: its affinity mask where the OS has one, else all cores."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except (AttributeError, OSError):  # macOS, Windows
-        return max(1, os.cpu_count() or 1)
-
-
 @dataclass(frozen=True)
 class ThreadChoice:
     """Torch threads per rank and where the number came from (for the launcher's report)."""
@@ -131,13 +125,17 @@ def choose_threads(threads: int | None, ranks_here: int, env: Mapping[str, str] 
 def ddp_config(config: TrainConfig, world: int, resume: bool) -> TrainConfig:
     """``config`` as trained by ``world`` ranks: ``micro_batch`` set to the per-rank batch if unset.
 
-    Raises :class:`ConfigError` if the batch does not split evenly, or a run trained with
-    whole-batch BatchNorm would be resumed on several ranks.
+    Raises :class:`ConfigError` if the batch does not split evenly, a run trained with whole-batch
+    BatchNorm would be resumed on several ranks, or the run asks for a GPU (the ranks run on CPUs;
+    ``auto`` means the CPU here).
     """
     if config.batch % world:
         raise ConfigError(f"batch {config.batch} does not split evenly over {world} ranks")
     if config.compile:
         raise ConfigError("--compile is not supported with DDP training (train without it)")
+    if config.device.startswith("cuda"):
+        raise ConfigError("DDP training runs on CPU processes (gloo); on a GPU train in one process "
+                          "(--device cuda, no --nproc)")
     local = config.batch // world
     if config.micro_batch is None:
         if resume:
@@ -154,8 +152,9 @@ def ddp_config(config: TrainConfig, world: int, resume: bool) -> TrainConfig:
 class ShardSource(BatchSource):
     """The single-process batch of each step, cut to this rank's shard of patches."""
 
-    def __init__(self, pairs: list[TrainingPair], config: TrainConfig, shard: slice) -> None:
-        super().__init__(pairs, config)
+    def __init__(self, pairs: list[TrainingPair], config: TrainConfig, shard: slice,
+                 device: torch.device | None = None) -> None:
+        super().__init__(pairs, config, device)
         self.shard = shard
 
     def _make(self, step: int) -> tuple[np.ndarray, np.ndarray]:
@@ -237,6 +236,10 @@ class RankRun(_Run):
         self.optimizer.register_step_post_hook(BatchNormMerge(self.model, local // config.micro_batch, rank))
         self.reduce_loss = self._mean_over_ranks
 
+    def choose_device(self) -> torch.device:
+        """The ranks compute on CPU cores (gloo): ``auto`` means the CPU here (:func:`ddp_config`)."""
+        return choose_device("cpu")
+
     def _open(self, resume: bool) -> Checkpoint | None:
         if self.primary:
             return super()._open(resume)
@@ -257,7 +260,7 @@ class RankRun(_Run):
         return DDP(self.model, **no_sync)
 
     def batch_source(self) -> BatchSource:
-        return ShardSource(self.pairs, self.config, self.shard)
+        return ShardSource(self.pairs, self.config, self.shard, self.device)
 
     def save(self, path: Path) -> None:
         if self.primary:

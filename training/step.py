@@ -75,7 +75,7 @@ def train_step(model: torch.nn.Module, optimizer: torch.optim.Optimizer, noisy: 
     """Forward, loss, backward and (unless NaN/Inf) an optimiser update on one batch.
 
     ``noisy``: NxCxHxW transfer-space input, ``ref``: Nx3xHxW transfer-space target.
-    ``bf16`` runs the forward pass under CPU bfloat16 autocast (loss in float32).
+    ``bf16`` runs the forward pass under bfloat16 autocast on the batch's device (loss in float32).
     ``micro_batch`` splits the batch into chunks of that size whose gradients are accumulated
     (the update still averages over all N patches, but BatchNorm normalises each chunk with its
     own statistics and updates its running statistics once per chunk).
@@ -93,7 +93,7 @@ def train_step(model: torch.nn.Module, optimizer: torch.optim.Optimizer, noisy: 
     size = micro_batch or len(noisy)
     loss_value = 0.0
     for start in range(0, len(noisy), size):
-        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+        with torch.autocast(noisy.device.type, dtype=torch.bfloat16, enabled=bf16):
             out = model(noisy[start:start + size])
         loss = denoising_loss(out, ref[start:start + size], gradient_weight, log_eps,
                               ms_ssim_weight, loss_norm, loss_space) * (len(out) / len(noisy))

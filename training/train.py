@@ -1,10 +1,13 @@
 """The training loop: data in RAM, guarded Adam steps, validation, logs, atomic checkpoints.
 
-A run lives in one folder (``TrainConfig.out``): ``train_config.json``, ``log.jsonl``,
-``last.ckpt`` (every ``ckpt_every`` steps and at the end), ``best.ckpt`` (best validation PSNR) and
-``curves.png``. The batch of step ``s`` is drawn from ``numpy.random.default_rng([seed, s])``, so a
-resumed run sees exactly the batches an uninterrupted one would; model, BatchNorm statistics, Adam
-state, LR schedule (a function of the step) and the torch RNG come from ``last.ckpt``.
+A run lives in one folder (``TrainConfig.out``, created with its parents): ``train_config.json``,
+``log.jsonl``, ``last.ckpt`` (every ``ckpt_every`` steps and at the end), ``best.ckpt`` (best
+validation PSNR) and ``curves.png``. The batch of step ``s`` is drawn from
+``numpy.random.default_rng([seed, s])`` (:mod:`training.batches`), so a resumed run sees exactly the
+batches an uninterrupted one would; model, BatchNorm statistics, Adam state, LR schedule (a function
+of the step) and the torch RNG come from ``last.ckpt``. The run computes on the device its config
+names (:func:`model.device.choose_device`); every checkpoint carries the card's ``meta``
+(:mod:`training.provenance`: hours, hardware, the data's pixel filter, the recipe).
 """
 from __future__ import annotations
 
@@ -13,12 +16,10 @@ import dataclasses
 import json
 import time
 from collections.abc import Callable
-from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
 
 from imaging.atomic_io import TMP_PREFIX, write_text_atomic
@@ -28,11 +29,13 @@ from console.progress import ProgressBar, ProgressFactory
 from model.architectures import build_model
 from model.checkpoint import (Checkpoint, model_from_checkpoint, read_checkpoint, restore_optimizer,
                               restore_rng, save_checkpoint)
+from model.device import choose_device
+from training.batches import BatchSource, auto_workers
 from training.dataset import (SceneRecord, ValImage, load_training_pairs, load_val_images, read_dataset_config,
                            read_manifest)
 from model.grow import grow_model
-from model.noise_input import drop_noise
-from training.patches import TrainingPair, sample_batch
+from training.patches import TrainingPair
+from training.provenance import card_meta, data_pixel_filter, hardware, inherited
 from training.run_log import RunLog, plot_curves
 from training.step import NonFiniteGuard, train_step
 from training.train_config import RESUMABLE_OVERRIDES, TrainConfig
@@ -41,18 +44,23 @@ from training.validate import Validator
 
 DATASET_ID_STRIDE = 1_000_000  # scene ids of the k-th dataset of a run are its indices + k * this
 
+# TrainConfig fields added after the first runs, with the values those runs trained with (their
+# saved configs lack the key; the defaults have since changed)
+_UNRECORDED = {"lr_warmup": 0, "lr_cosine_steps": 0, "lr_final": 0.01}
 # dataset.json fields a resumed run must see unchanged
 _DATA_KEYS = ("spp", "ref_spp", "filter", "aovs", "variance")
 
 
 @dataclass
 class TrainResult:
-    """Outcome of :func:`train`: final step, best validation PSNR (dB) and skipped steps."""
+    """Outcome of :func:`train`: final step, best validation PSNR (dB), skipped steps, and why it
+    stopped before ``steps`` (``"cpu budget"``, ``"time"``; None: it reached them)."""
 
     run_dir: Path
     step: int
     best_psnr: float | None
     skipped_steps: int
+    stopped: str | None = None
 
 
 @dataclass
@@ -73,50 +81,14 @@ def build_optimizer(model: torch.nn.Module, config: TrainConfig) -> torch.optim.
     return torch.optim.Adam(model.parameters(), lr=config.lr, fused=True if config.fused_adam else None)
 
 
-def to_tensor(batch: np.ndarray, channels_last: bool) -> torch.Tensor:
-    """NxHxWxC float32 array -> NxCxHxW tensor (channels-last memory order, or contiguous NCHW)."""
-    tensor = torch.from_numpy(batch).permute(0, 3, 1, 2)
-    return tensor if channels_last else tensor.contiguous()
-
-
-class BatchSource:
-    """Deterministic per-step batches, optionally sampled one step ahead on a background thread."""
-
-    def __init__(self, pairs: list[TrainingPair], config: TrainConfig) -> None:
-        self.pairs, self.config = pairs, config
-        self._pool = ThreadPoolExecutor(1, thread_name_prefix="patches") if config.prefetch else None
-        self._pending: tuple[int, Future[tuple[np.ndarray, np.ndarray]]] | None = None
-
-    def _make(self, step: int) -> tuple[np.ndarray, np.ndarray]:
-        rng = np.random.default_rng([self.config.seed, step])
-        model = self.config.model
-        noisy, ref = sample_batch(self.pairs, self.config.batch, self.config.patch, rng, model.color_groups)
-        if model.noise_input:
-            drop_noise(noisy, model.noise_start, self.config.noise_dropout, rng)
-        return noisy, ref
-
-    def get(self, step: int) -> tuple[torch.Tensor, torch.Tensor]:
-        """(noisy NxCxPxP, ref Nx3xPxP) transfer-space tensors of ``step``."""
-        if self._pending is not None and self._pending[0] == step:
-            noisy, ref = self._pending[1].result()
-        else:
-            noisy, ref = self._make(step)
-        self._pending = (step + 1, self._pool.submit(self._make, step + 1)) if self._pool else None
-        return to_tensor(noisy, self.config.channels_last), to_tensor(ref, self.config.channels_last)
-
-    def close(self) -> None:
-        """Stop the background thread."""
-        if self._pool is not None:
-            self._pool.shutdown(wait=True, cancel_futures=True)
-
-
 def resume_config(out: str | Path, overrides: dict[str, Any]) -> TrainConfig:
     """The config of the run in ``out`` (from its last.ckpt) with the allowed ``overrides``."""
     ckpt = read_checkpoint(Path(out) / "last.ckpt")
     saved = ckpt.header.get("train_config")
     if not isinstance(saved, dict):
         raise ConfigError(f"{ckpt.path}: holds no training config to resume from")
-    base = TrainConfig.from_dict(saved)
+    # a run saved before these fields existed trained with their values of the time
+    base = TrainConfig.from_dict({**_UNRECORDED, **saved})
     changed = sorted(k for k, v in overrides.items() if k not in RESUMABLE_OVERRIDES and getattr(base, k, v) != v)
     if changed:
         raise ConfigError(f"cannot change {', '.join(changed)} on --resume (start a new run instead)")
@@ -177,8 +149,10 @@ class _Run:
     primary = True  # writes the run's files (under DDP only rank 0 does: training.distributed)
     reduce_loss: Callable[[float], float] | None = None  # chunk loss -> the value all DDP ranks agree on
 
-    def __init__(self, config: TrainConfig, resume: bool) -> None:
+    def __init__(self, config: TrainConfig, resume: bool, recipe: dict[str, Any] | None = None) -> None:
         self.config = config
+        self.device = self.choose_device()
+        self.recipe = recipe  # {"name", "sha256", "stage"} of the recipe that runs this, for the card
         self.dir = Path(config.out)
         self.log = RunLog(self.dir / "log.jsonl")
         self.last_path, self.best_path = self.dir / "last.ckpt", self.dir / "best.ckpt"
@@ -195,12 +169,22 @@ class _Run:
         self.meter = _LossMeter(**extra.get("meter", {}))
         self.train_s = float(extra.get("train_s", 0.0))  # optimisation seconds so far, all sittings
         self.cpu_s = float(extra.get("cpu_s", 0.0))  # process CPU seconds of optimisation, all sittings
+        self.gpu_s = float(extra.get("gpu_s", 0.0))  # optimisation seconds on a GPU, all sittings
+        self.pixel_filter = data_pixel_filter(self.data_config)
+        self.machine = hardware(self.device)
         # identity of the --init-from weights (the file at that path may be replaced later)
         self.init_from: dict[str, Any] | None = extra.get("init_from") if ckpt else (
             {"path": config.init_from, "sha256": file_sha256(Path(config.init_from))} if config.init_from else None)
+        # hours and hardware of the chain of warm starts before this run (its card adds them up)
+        self.inherited: dict[str, Any] = extra.get("inherited") if ckpt and "inherited" in extra else \
+            inherited(self.source_header)
         self.saved_step: int | None = self.step if ckpt else None
         if ckpt:
             self.log.truncate_after(self.step)
+
+    def choose_device(self) -> torch.device:
+        """Where this run computes: the config's ``device`` (:func:`model.device.choose_device`)."""
+        return choose_device(self.config.device)
 
     def _load_data(self, ckpt: Checkpoint | None) -> tuple[dict[str, Any], list[TrainingPair], list[ValImage]]:
         """The primary dataset's config (the extra datasets' configs under ``extra_data``), the
@@ -229,6 +213,11 @@ class _Run:
                 data_config.setdefault("extra_data", []).append({"path": folder, **this, "scenes": scenes})
             chosen.append((root, train, val))
         _check_scene_counts(data_config, ckpt, config)
+        if config.val_every and not any(val for _, _, val in chosen):
+            scenes = sum(len(train) for _, train, _ in chosen)
+            raise DatasetError(f"{config.data}: too small for validation: none of its {scenes} scenes is in split "
+                               f"'val' (generate-dataset puts a seeded {data_config.get('val_fraction', 0.1):g} of "
+                               "the scenes there); render more scenes, or train without validation (--val-every 0)")
         for k, (root, train, val) in enumerate(chosen):
             pairs += load_training_pairs(root, train, get_transfer(model.transfer), model.aux_inputs,
                                          converged=config.converged_pairs, noise=model.noise_input,
@@ -244,19 +233,22 @@ class _Run:
             return ckpt
         if self.last_path.exists():
             raise ConfigError(f"{self.dir} already holds a run (last.ckpt); use --resume or another --out")
-        if not self.dir.parent.is_dir():
-            raise ConfigError(f"{self.dir.parent}: output parent folder does not exist")
-        self.dir.mkdir(exist_ok=True)
+        if self.dir.exists() and not self.dir.is_dir():
+            raise ConfigError(f"{self.dir}: exists and is not a folder")
+        self.dir.mkdir(parents=True, exist_ok=True)
         self.log.path.unlink(missing_ok=True)
         _remove_temporaries(self.dir)
         return None
 
     def _build(self, ckpt: Checkpoint | None) -> tuple[torch.nn.Module, torch.optim.Adam]:
+        self.source_header: dict[str, Any] | None = None  # the warm start's header (its card's hours)
         if ckpt is None:
             torch.manual_seed(self.config.seed)
             model = build_model(self.config.model)
             if self.config.init_from:
-                source = model_from_checkpoint(read_checkpoint(self.config.init_from))
+                source_ckpt = read_checkpoint(self.config.init_from)
+                self.source_header = source_ckpt.header
+                source = model_from_checkpoint(source_ckpt)
                 try:
                     grow_model(model, source)
                 except ConfigError as exc:
@@ -265,8 +257,8 @@ class _Run:
             model = model_from_checkpoint(ckpt)
             if model.config != self.config.model:
                 raise ConfigError(f"{ckpt.path}: model config differs from the run's train config")
-        if self.config.channels_last:
-            model = model.to(memory_format=torch.channels_last)
+        model = model.to(self.device, memory_format=torch.channels_last if self.config.channels_last
+                         else torch.preserve_format)
         model.train()
         optimizer = build_optimizer(model, self.config)
         if ckpt is not None:
@@ -279,8 +271,13 @@ class _Run:
         return _compiled(self)
 
     def batch_source(self) -> BatchSource:
-        """Where the batch of each step comes from."""
-        return BatchSource(self.pairs, self.config)
+        """Where the batch of each step comes from (prepared ahead, on the run's device)."""
+        workers = self.config.workers or auto_workers(self.device)
+        return BatchSource(self.pairs, self.config, self.device, workers)
+
+    def meta(self) -> dict[str, Any]:
+        """The card's ``meta`` of a checkpoint written now (:func:`training.provenance.card_meta`)."""
+        return card_meta(self.inherited, self.cpu_s, self.gpu_s, self.machine, self.pixel_filter, self.recipe)
 
     def save(self, path: Path) -> None:
         """Checkpoint the current state to ``path`` atomically."""
@@ -288,8 +285,9 @@ class _Run:
         save_checkpoint(path, self.model, step=self.step, optimizer=self.optimizer,
                         train_config=self.config.to_dict(), data_config=self.data_config,
                         extra={"best_psnr": self.best_psnr, "skipped_total": self.guard.skipped_total,
-                               "meter": meter, "train_s": self.train_s, "cpu_s": self.cpu_s,
-                               "init_from": self.init_from})
+                               "meter": meter, "train_s": self.train_s, "cpu_s": self.cpu_s, "gpu_s": self.gpu_s,
+                               "init_from": self.init_from, "inherited": self.inherited},
+                        meta=self.meta())
         if path == self.last_path:
             self.saved_step = self.step
 
@@ -306,6 +304,8 @@ class _Run:
         m = self.meter
         elapsed = time.perf_counter() - m.started - m.paused
         self.train_s += max(elapsed, 0.0)
+        if self.device.type == "cuda":
+            self.gpu_s += max(elapsed, 0.0)
         self.cpu_s += max(time.process_time() - m.started_cpu - m.paused_cpu, 0.0)
         self.log.append({"type": "train", "step": self.step, "loss": m.total / m.count if m.count else None,
                          "lr": self.config.lr_at(self.step - 1),
@@ -362,22 +362,35 @@ def _compiled(run: _Run) -> torch.nn.Module:
     return torch.compile(run.model)
 
 
-def train(config: TrainConfig, resume: bool = False, progress: ProgressFactory | None = None) -> TrainResult:
+def train(config: TrainConfig, resume: bool = False, progress: ProgressFactory | None = None,
+          minutes: float | None = None, recipe: dict[str, Any] | None = None) -> TrainResult:
     """Train (or, with ``resume``, continue) the run described by ``config`` up to ``config.steps``.
 
-    Raises :class:`DatasetError`, :class:`ConfigError`, :class:`CheckpointError` or
-    :class:`TrainingError` (NaN/Inf for ``max_bad_steps`` steps in a row). A KeyboardInterrupt
-    propagates without saving (a step cut in half is no state to resume from): ``--resume``
-    continues from the last periodic last.ckpt. Without "val" scenes (or with ``val_every=0``)
-    there is no validation and no best.ckpt.
+    ``minutes``: stop this sitting after that many minutes of wall time (validated and saved, so
+    ``--resume`` continues it); ``recipe``: {"name", "sha256", "stage"} written into every
+    checkpoint's card. Raises :class:`DatasetError` (also for data without a "val" scene while
+    ``val_every`` > 0), :class:`ConfigError`, :class:`CheckpointError` or :class:`TrainingError`
+    (NaN/Inf for ``max_bad_steps`` steps in a row). A KeyboardInterrupt propagates without saving
+    (a step cut in half is no state to resume from): ``--resume`` continues from the last periodic
+    last.ckpt. With ``val_every=0`` there is no validation and no best.ckpt.
     """
     if config.threads:
         torch.set_num_threads(config.threads)
-    return run_training(_Run(config, resume), progress)
+    deadline = None if minutes is None else time.monotonic() + 60.0 * minutes
+    return run_training(_Run(config, resume, recipe), progress, deadline)
 
 
-def run_training(run: _Run, progress: ProgressFactory | None = None) -> TrainResult:
-    """Step ``run`` up to its config's ``steps``: the loop of :func:`train`, shared with DDP."""
+def _stop_reason(run: _Run, deadline: float | None) -> str | None:
+    if run.out_of_cpu():
+        return "cpu budget"
+    if deadline is not None and time.monotonic() >= deadline:
+        return "time"
+    return None
+
+
+def run_training(run: _Run, progress: ProgressFactory | None = None, deadline: float | None = None) -> TrainResult:
+    """Step ``run`` up to its config's ``steps`` (or its CPU budget, or the monotonic-clock
+    ``deadline``): the loop of :func:`train`, shared with DDP."""
     config = run.config
     if run.primary:
         write_text_atomic(run.dir / "train_config.json", json.dumps(config.to_dict(), indent=2) + "\n")
@@ -394,9 +407,11 @@ def run_training(run: _Run, progress: ProgressFactory | None = None) -> TrainRes
                 first_line = str(exc).splitlines()[0] if str(exc) else ""
                 raise TrainingError(f"torch.compile failed ({type(exc).__name__}: {first_line}); "
                                     f"train without --compile") from None
-        while run.step < config.steps and not run.out_of_cpu():
+        stopped = _stop_reason(run, deadline)
+        while run.step < config.steps and stopped is None:
             _one_step(run, net, source, bar)
-        if run.out_of_cpu() and run.meter.count + run.meter.skipped:  # stopped between log lines
+            stopped = _stop_reason(run, deadline)
+        if stopped and run.meter.count + run.meter.skipped:  # stopped between log lines
             run.log_train()
             if config.val_every and run.step % config.val_every:
                 run.validate()
@@ -409,4 +424,5 @@ def run_training(run: _Run, progress: ProgressFactory | None = None) -> TrainRes
                 plot_curves(run.log.read(), run.dir / "curves.png")
     if run.saved_step != run.step:
         run.save(run.last_path)
-    return TrainResult(run.dir, run.step, run.best_psnr, run.guard.skipped_total)
+    return TrainResult(run.dir, run.step, run.best_psnr, run.guard.skipped_total,
+                       stopped if run.step < config.steps else None)

@@ -1,0 +1,225 @@
+"""Running a recipe from nothing: render what is missing, train the stages in order, resume anywhere.
+
+``train --recipe NAME --out DIR`` lays out::
+
+    DIR/recipe.json         the recipe's name, sha256 and content (a second run must be the same recipe)
+    DIR/STAGE/              one train run per stage (train_config.json, log.jsonl, last/best.ckpt, curves.png)
+    DIR/STAGE/done.json     written when the stage has finished (its steps, or its CPU budget)
+    DIR/NAME.ckpt           the final stage's best checkpoint without the optimiser state: the model
+
+Datasets go to ``DATA_ROOT/<dataset name>`` (``--data-root``, default ``data``), rendered by
+:func:`dataset_gen.generate.generate_dataset`, which skips finished scenes; a folder there made with
+other settings is refused, so recipes that share a dataset (by name and settings) render it once.
+After a kill, the same command continues: the dataset where it stopped, a stage from its
+``last.ckpt``, later stages from the start. ``--minutes`` stops the whole command after that much
+wall time, leaving a stage resumable.
+
+With ``--data MINE`` (and ``--extra-data``), the recipe trains on those folders instead of its
+datasets; with ``--init-from MODEL`` as well, it fine-tunes: one stage, ``finetune``, with the final
+stage's network and crops and the recipe's ``[finetune]`` optimisation, starting from MODEL's weights.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from console.progress import ProgressFactory
+from dataset_gen.generate import generate_dataset
+from imaging.atomic_io import write_text_atomic
+from imaging.errors import ConfigError, DatasetError
+from model.checkpoint import read_checkpoint, strip_optimizer
+from training.dataset import read_manifest
+from training.recipe import DatasetSpec, Recipe, Stage
+from training.train import resume_config, train
+from training.train_config import RESUMABLE_OVERRIDES, TrainConfig
+
+DONE = "done.json"
+FINETUNE = "finetune"
+Log = Callable[[str], None]
+
+
+@dataclass(frozen=True)
+class RecipeRun:
+    """How to run a recipe here: run folder, data root, the user's data and warm start (fine-tuning),
+    the wall-time limit of this command (minutes; None: none) and run control for every stage
+    (``device``, ``threads``, ``workers``, ``progress``: TrainConfig fields)."""
+
+    out: Path
+    data_root: Path = Path("data")
+    data: tuple[str, ...] = ()
+    init_from: str | None = None
+    minutes: float | None = None
+    control: dict[str, Any] = dataclasses.field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class RecipeResult:
+    """What a command did: the model file (None until the final stage finished), the stage it
+    stopped in (``stopped_in``; None: all finished) and each finished stage's ``done.json``."""
+
+    model: Path | None
+    stopped_in: str | None
+    stages: dict[str, dict[str, Any]]
+
+
+def stages_to_run(recipe: Recipe, run: RecipeRun) -> list[Stage]:
+    """The stages this command trains: the recipe's, or the one ``finetune`` stage."""
+    if run.init_from is None:
+        return list(recipe.stages)
+    if not run.data:
+        raise ConfigError("--init-from with --recipe fine-tunes a model on your data: give --data too")
+    final = recipe.final
+    fields = {**final.fields, **recipe.finetune}
+    return [dataclasses.replace(final, name=FINETUNE, init_from=None, fields=fields, measured={})]
+
+
+def stage_data(recipe: Recipe, stage: Stage, run: RecipeRun) -> list[str]:
+    """The dataset folders of ``stage``: the user's (``--data``) or the recipe's under the data root."""
+    return list(run.data) if run.data else [str(run.data_root / name) for name in stage.data]
+
+
+def stage_init(recipe: Recipe, stage: Stage, run: RecipeRun) -> str | None:
+    """The checkpoint that starts ``stage``: the earlier stage's best (its last when that stage does
+    not validate), or the fine-tune's model."""
+    if stage.name == FINETUNE:
+        return run.init_from
+    if stage.init_from is None:
+        return None
+    validates = recipe.stage(stage.init_from).fields.get("val_every", 1)
+    return str(run.out / stage.init_from / ("best.ckpt" if validates else "last.ckpt"))
+
+
+def plan(recipe: Recipe, run: RecipeRun) -> list[str]:
+    """The commands the recipe amounts to (what ``--dry-run`` prints): generate-dataset per dataset
+    it needs, then train per stage."""
+    lines = [f"# recipe {recipe.name} ({recipe.path}), sha256 {recipe.sha256[:16]}"]
+    stages = stages_to_run(recipe, run)
+    if not run.data:
+        needed = dict.fromkeys(name for stage in stages for name in stage.data)
+        lines += [recipe.datasets[name].command(str(run.data_root)) for name in needed]
+    for stage in stages:
+        config = stage.train_config(run.out / stage.name, stage_data(recipe, stage, run), stage_init(recipe, stage, run),
+                                    run.control)
+        words = [f"train --data {config.data}"] + [f"--extra-data {d}" for d in config.extra_data]
+        words += [f"--out {config.out}"] + ([f"--init-from {config.init_from}"] if config.init_from else [])
+        settings = ", ".join(f"{k} {v}" for k, v in {"network": stage.network, "patch": stage.patch.size,
+                                                          "detail_crops": stage.patch.detail, **stage.fields}.items())
+        lines.append(f"# stage {stage.name}: " + " ".join(words))
+        lines.append(f"#   with {settings}")
+        if stage.measured:
+            lines.append("#   measured: " + ", ".join(f"{k} {v}" for k, v in stage.measured.items()))
+    return lines
+
+
+def render_datasets(recipe: Recipe, stages: list[Stage], run: RecipeRun,
+                    progress: ProgressFactory | None, log: Log) -> None:
+    """Render every scene the stages' datasets still lack (resuming where a dataset stopped)."""
+    for name in dict.fromkeys(n for stage in stages for n in stage.data):
+        spec = recipe.datasets[name]
+        folder = run.data_root / name
+        have = _scene_count(folder)
+        if have < spec.scenes:
+            log(f"rendering {name}: {spec.scenes - have} of {spec.scenes} scenes into {folder}")
+            summary = generate_dataset(folder, spec.config, spec.scenes, 0, progress)
+            if summary.failed:
+                raise DatasetError(f"{folder}: {len(summary.failed)} scene(s) failed to render, first: "
+                                   f"{summary.failed[0]}; run the command again to retry")
+        _check_scenes(folder, spec)
+
+
+def _scene_count(folder: Path) -> int:
+    try:
+        return len(read_manifest(folder))
+    except DatasetError:
+        return 0
+
+
+def _check_scenes(folder: Path, spec: DatasetSpec) -> None:
+    """The recipe trains on exactly its scenes: a folder holding more was made for something else."""
+    count = _scene_count(folder)
+    if count != spec.scenes:
+        raise DatasetError(f"{folder}: holds {count} scenes, the recipe's dataset {spec.name!r} has {spec.scenes} "
+                           "(use another --data-root)")
+
+
+def _check_recipe(out: Path, recipe: Recipe) -> None:
+    """``out`` holds nothing, or a run of this very recipe (its sha256): never a mix."""
+    path = out / "recipe.json"
+    if path.exists():
+        try:
+            saved = json.loads(path.read_text(encoding="utf-8"))
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise ConfigError(f"{path}: cannot read ({exc})") from None
+        if saved.get("sha256") != recipe.sha256:
+            raise ConfigError(f"{out} holds a run of recipe {saved.get('name')!r} (sha256 "
+                              f"{str(saved.get('sha256'))[:12]}), not of {recipe.name} ({recipe.sha256[:12]}); "
+                              "use another --out")
+        return
+    out.mkdir(parents=True, exist_ok=True)
+    write_text_atomic(path, json.dumps({"name": recipe.name, "sha256": recipe.sha256, "source": str(recipe.path),
+                                        "text": recipe.path.read_text(encoding="utf-8")}, indent=1) + "\n")
+
+
+def _resumed_config(folder: Path, wanted: TrainConfig) -> TrainConfig:
+    """The config to resume ``folder`` with: its checkpoint's, which must train what the stage
+    trains (only run control and data paths may differ)."""
+    overrides = {k: getattr(wanted, k) for k in RESUMABLE_OVERRIDES}
+    config = resume_config(folder, overrides)
+    differ = sorted(f.name for f in dataclasses.fields(TrainConfig)
+                    if f.name not in RESUMABLE_OVERRIDES | {"out", "init_from"}
+                    and getattr(config, f.name) != getattr(wanted, f.name))
+    if differ:
+        raise ConfigError(f"{folder}: its run trains something else than the recipe's stage "
+                          f"({', '.join(differ)} differ); use another --out")
+    return config
+
+
+def run_stage(recipe: Recipe, stage: Stage, run: RecipeRun, progress: ProgressFactory | None,
+              minutes: float | None, log: Log) -> dict[str, Any] | None:
+    """Train ``stage`` to its end (None: stopped by ``minutes`` first) and mark it done."""
+    folder = run.out / stage.name
+    done = folder / DONE
+    if done.exists():
+        return json.loads(done.read_text(encoding="utf-8"))
+    wanted = stage.train_config(folder, stage_data(recipe, stage, run), stage_init(recipe, stage, run), run.control)
+    resume = (folder / "last.ckpt").exists()
+    config = _resumed_config(folder, wanted) if resume else wanted
+    log(f"stage {stage.name}: {'resuming at step ' + str(read_checkpoint(folder / 'last.ckpt').header['step']) if resume else 'starting'}"
+        f" ({config.steps} steps, {config.model.arch}, data {', '.join(Path(d).name for d in (config.data, *config.extra_data))})")
+    result = train(config, resume=resume, progress=progress, minutes=minutes, recipe=recipe.identity(stage.name))
+    if result.stopped == "time":
+        return None
+    record = {"step": result.step, "best_psnr": result.best_psnr, "stopped": result.stopped}
+    write_text_atomic(done, json.dumps(record) + "\n")
+    return record
+
+
+def run_recipe(recipe: Recipe, run: RecipeRun, progress: ProgressFactory | None = None,
+               data_progress: ProgressFactory | None = None, log: Log = print) -> RecipeResult:
+    """Run ``recipe`` as ``run`` says (module docstring). Raises what ``train`` and
+    ``generate-dataset`` raise."""
+    import time
+
+    start = time.monotonic()
+    stages = stages_to_run(recipe, run)
+    _check_recipe(run.out, recipe)
+    if not run.data:
+        render_datasets(recipe, stages, run, data_progress, log)
+    finished: dict[str, dict[str, Any]] = {}
+    for stage in stages:
+        left = None if run.minutes is None else run.minutes - (time.monotonic() - start) / 60.0
+        if left is not None and left <= 0:
+            return RecipeResult(None, stage.name, finished)
+        record = run_stage(recipe, stage, run, progress, left, log)
+        if record is None:
+            return RecipeResult(None, stage.name, finished)
+        finished[stage.name] = record
+    final = run.out / stages[-1].name
+    best = final / "best.ckpt"
+    model = run.out / (f"{recipe.name}-{FINETUNE}d.ckpt" if run.init_from else f"{recipe.name}.ckpt")
+    strip_optimizer(best if best.exists() else final / "last.ckpt", model)
+    return RecipeResult(model, None, finished)
