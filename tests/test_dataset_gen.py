@@ -187,3 +187,40 @@ def test_variance_flag_reaches_the_config(tmp_path: Path) -> None:
     saved = json.loads((tmp_path / "d" / "dataset.json").read_text())
     assert saved["variance"] is True
     assert (tmp_path / "d" / "images" / image_name(0, 2, "var")).exists()
+
+
+def test_pixel_filter_is_rendered_and_recorded(tmp_path: Path, capsys) -> None:
+    """--pixel-filter: dataset.json and every image's header say it; a folder made with another
+    filter is refused; an unknown filter is a usage error."""
+    out = tmp_path / "g"
+    assert cli_main([*TINY_ARGS, "--scenes", "1", "--out", str(out), "--pixel-filter", "gaussian:stddev=0.4"]) == 0
+    saved = json.loads((out / "dataset.json").read_text())
+    assert saved["filter"] == {"type": "gaussian", "stddev": 0.4}
+    assert read_exr(out / "images" / image_name(0, 2)).metadata["filter"] == "gaussian:stddev=0.4"
+    assert cli_main([*TINY_ARGS, "--scenes", "2", "--out", str(out)]) == 1
+    assert "generated with other settings (filter: " in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exc:
+        cli_main([*TINY_ARGS, "--scenes", "1", "--out", str(tmp_path / "b"), "--pixel-filter", "blackman"])
+    assert exc.value.code == 2 and "unknown pixel filter 'blackman'" in capsys.readouterr().err
+
+
+def test_scene_files_are_the_scenes(tmp_path: Path, capsys) -> None:
+    """--scene-files: scene i is file i (a folder gives its *.xml, sorted), rendered at --res;
+    --scenes defaults to one per file and may not exceed them."""
+    from scenes.registry import generate
+    from scenes.xml_export import write_scene
+
+    paths = [str(write_scene(generate(family, i), tmp_path / "mine" / f"{i}"))
+             for i, family in enumerate(("cornell_box", "material_preview"))]
+    out = tmp_path / "d"
+    assert cli_main(["--scene-files", *paths, "--out", str(out), "--res", "16", "--spp", "1,2", "--ref-spp", "4",
+                     "--quiet"]) == 0
+    records = read_records(out)
+    assert [r["family"] for r in records] == ["scene-file"] * 2
+    assert [r["scene_file"] for r in records] == [str(Path(p).resolve()) for p in paths]
+    assert read_exr(out / "images" / image_name(1, 2)).rgb.shape == (16, 16, 3)
+    assert json.loads((out / "dataset.json").read_text())["families"] == []
+    assert cli_main(["--scene-files", paths[0], "--scenes", "3", "--out", str(tmp_path / "e"), "--quiet"]) == 1
+    assert "--scenes 3: only 1 scene file(s) given" in capsys.readouterr().err
+    assert cli_main(["--scene-files", str(tmp_path / "none.xml"), "--out", str(tmp_path / "f"), "--quiet"]) == 1
+    assert "none.xml: scene file not found" in capsys.readouterr().err

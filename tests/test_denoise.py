@@ -204,3 +204,18 @@ def test_an_unknown_spp_and_filtered_noise_are_named(ckpt: Path) -> None:
     assert den.denoise_array(blurred, spp=4, pixel_filter="box").notes == ()
     assert "the render's pixel filter is gaussian" in den.denoise_array(white, spp=4, pixel_filter="gaussian").notes[0]
     assert Denoiser(ckpt).denoise_array(white).notes == ()  # one network trained on every spp: nothing to say
+
+
+def test_device_is_chosen_once_and_a_missing_gpu_is_an_error(ckpt: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """--device: the CPU runs the folded networks as before; cuda where there is none is refused
+    before any image is read."""
+    import model.device
+
+    monkeypatch.setattr(model.device, "cuda_available", lambda: False)
+    img = np.random.default_rng(0).random((12, 12, 3), dtype=np.float32)
+    on_cpu = Denoiser(ckpt, device="cpu")
+    assert on_cpu.device.type == "cpu" and on_cpu.net is not on_cpu.model  # the folded copy
+    np.testing.assert_array_equal(on_cpu.denoise_array(img).image, Denoiser(ckpt).denoise_array(img).image)
+    assert Denoiser(ckpt, device="auto").device.type == "cpu"
+    with pytest.raises(DenoiserError, match="device 'cuda': torch sees no CUDA device"):
+        Denoiser(ckpt, device="cuda")

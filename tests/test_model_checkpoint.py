@@ -248,3 +248,19 @@ def test_shipped_checkpoints_load_and_carry_their_training_record(path: Path) ->
     train_config = json.loads((record / "train_config.json").read_text())
     if path.stem.endswith("-lowspp"):
         assert meta["train_config"]["max_spp"] == train_config["max_spp"] == 16
+
+
+def test_the_card_meta_and_the_pixel_filter_it_records(tmp_path: Path) -> None:
+    """``meta`` is written as given; the pixel filter comes from it, else from the data's record
+    (a name or a dict), else it is a box (every checkpoint made before the record existed)."""
+    from model.checkpoint import checkpoint_meta, pixel_filter
+
+    path = tmp_path / "m.ckpt"
+    gaussian = {"type": "gaussian", "stddev": 0.5}
+    save_checkpoint(path, build_model(ModelConfig(layers=2, growth=4, init_features=8)), step=1,
+                    meta={"pixel_filter": gaussian, "hours": {"cpu": 1.5, "gpu": 0.0}})
+    header = read_checkpoint(path).header
+    assert checkpoint_meta(header)["hours"] == {"cpu": 1.5, "gpu": 0.0} and pixel_filter(header) == gaussian
+    assert pixel_filter({"data_config": {"filter": "box"}}) == {"type": "box"}
+    assert pixel_filter({"data_config": {"filter": {"type": "tent"}}}) == {"type": "tent"}
+    assert pixel_filter({}) == {"type": "box"} and checkpoint_meta({}) == {}

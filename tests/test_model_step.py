@@ -113,6 +113,24 @@ def test_loss_is_computed_in_float32_under_bf16() -> None:
         assert denoising_loss(model(noisy), ref).dtype == torch.float32
 
 
+def test_bf16_autocasts_on_the_batchs_device(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The forward pass autocasts where the batch lives (a GPU batch: on the GPU, in bfloat16), and
+    only when asked."""
+    seen = []
+    real = torch.autocast
+
+    def recording(device_type: str, *args: object, **kwargs: object) -> torch.autocast:
+        seen.append((device_type, kwargs.get("dtype"), kwargs.get("enabled")))
+        return real(device_type, *args, **kwargs)
+
+    monkeypatch.setattr(torch, "autocast", recording)
+    model = build_model(TINY)
+    opt = torch.optim.Adam(model.parameters(), lr=1e-3)
+    train_step(model, opt, *_batch(), step=0, lr=1e-3, guard=NonFiniteGuard(3), bf16=True)
+    train_step(model, opt, *_batch(), step=1, lr=1e-3, guard=NonFiniteGuard(3))
+    assert seen == [("cpu", torch.bfloat16, True), ("cpu", torch.bfloat16, False)]
+
+
 def test_micro_batch_of_whole_batch_is_identical_and_chunks_accumulate() -> None:
     noisy, ref = _batch()
     weights = []

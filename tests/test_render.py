@@ -44,6 +44,18 @@ def test_box_filter_decorrelates_pixel_noise(mi: Any) -> None:
     assert _neighbour_noise_correlation(theirs) > 0.2
 
 
+def test_a_named_filter_correlates_the_noise_and_refuses_crops(mi: Any) -> None:
+    """A dataset for a studio's filter renders with it: its pixels' noise is correlated as the
+    studio's renders are; such a film cannot be stitched from crops (samples cross their edges)."""
+    scene = lit_plane_scene(mi, size=64, rfilter="box")
+    loaded = load_scene(prepare(scene, pixel_filter="gaussian"))
+    images = [render_loaded(loaded, spp=2, seed=s).rgb for s in (1, 2)]
+    assert _neighbour_noise_correlation(images) > 0.2
+    larger = load_scene(prepare(scene, (128, 96), pixel_filter="gaussian"))
+    with pytest.raises(RenderError, match="GaussianFilter pixel filter does not fit the memory budget"):
+        render_loaded(larger, spp=1, max_memory_mb=0.01)
+
+
 def test_aovs_only_when_requested(plane_scene: dict) -> None:
     plain = load_scene(prepare(plane_scene))
     assert not str(plain.integrator()).startswith("AOVIntegrator")

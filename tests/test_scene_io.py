@@ -8,6 +8,7 @@ import pytest
 
 from imaging.errors import SceneError
 from rendering.render import load_scene, prepare, render
+from rendering.scene_io import pixel_filter_spec
 
 FILM = """<scene version="3.0.0">
   <default name="res" value="24"/>
@@ -48,6 +49,35 @@ def test_included_film_gets_box_filter_and_float32(tmp_path: Path) -> None:
     assert str(film.rfilter()).startswith("BoxFilter")
     assert tuple(film.crop_size()) == (24, 24)
     assert 'name="component_format" value="float32"' in prepared.xml
+
+
+def test_a_named_pixel_filter_is_forced_instead_of_the_box(tmp_path: Path) -> None:
+    prepared = prepare(_write_scene(tmp_path), pixel_filter="gaussian:stddev=0.3")
+    assert prepared.pixel_filter == {"type": "gaussian", "stddev": 0.3}
+    assert '<rfilter type="gaussian"><float name="stddev" value="0.3" /></rfilter>' in prepared.xml
+    assert str(load_scene(prepared).sensors()[0].film().rfilter()).startswith("GaussianFilter")
+
+
+@pytest.mark.parametrize("text, spec", [
+    (None, {"type": "box"}), ("box", {"type": "box"}), ("gaussian", {"type": "gaussian", "stddev": 0.5}),
+    ("gaussian:stddev=0.25", {"type": "gaussian", "stddev": 0.25}),
+    ("lanczos", {"type": "lanczos", "lobes": 3}), ({"type": "tent"}, {"type": "tent"}),
+    ("mitchell:B=0.5", {"type": "mitchell", "B": 0.5, "C": 1 / 3}),
+])
+def test_pixel_filter_spec_fills_in_the_defaults(text: object, spec: dict) -> None:
+    assert pixel_filter_spec(text) == spec
+
+
+@pytest.mark.parametrize("text, message", [
+    ("blackman-harris", "unknown pixel filter 'blackman-harris' (valid: box, tent, gaussian, mitchell"),
+    ("gaussian:radius=2", "pixel filter 'gaussian' has no parameter 'radius' (it takes: stddev)"),
+    ("gaussian:stddev=-1", "stddev must be a number > 0"),
+    ("gaussian:stddev", "expected NAME or NAME:PARAM=NUMBER"),
+])
+def test_a_bad_pixel_filter_is_one_line(text: str, message: str) -> None:
+    with pytest.raises(SceneError) as exc:
+        pixel_filter_spec(text)
+    assert message in str(exc.value)
 
 
 def test_params_and_resolution(tmp_path: Path) -> None:

@@ -364,3 +364,56 @@ def test_spp_limits_train_and_validate_on_the_renders_within(noisy_dataset: Path
         assert main(["--data", str(noisy_dataset), "--out", str(tmp_path / "r3"), "--steps", "1", *bad, *flags]) == 1
         err = capsys.readouterr().err.strip()
         assert len(err.splitlines()) == 1 and message in err, err
+
+
+def test_a_dataset_without_a_validation_scene_says_so(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    data = write_synthetic_dataset(tmp_path / "ds", scenes=2, res=(32, 32), spp=(4,), val_scenes=())
+    assert main(["--data", str(data), "--out", str(tmp_path / "r"), "--patch", "28", "--no-progress"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "too small for validation: none of its 2 scenes is in split 'val'" in err[0]
+    assert "--val-every 0" in err[0]
+    assert main(["--data", str(data), "--out", str(tmp_path / "r"), "--patch", "28", "--val-every", "0",
+                 "--steps", "1", "--batch", "2", "--preset", "flat-s", "--no-progress"]) == 0
+
+
+def test_out_is_created_with_its_parents_and_minutes_stop_a_run(dataset: Path, tmp_path: Path,
+                                                                capsys: pytest.CaptureFixture) -> None:
+    """--out in a fresh clone (runs/x, runs/ missing) is made like generate-dataset's; --minutes
+    stops the sitting saved, and --resume goes on."""
+    run = tmp_path / "runs" / "deeper" / "x"
+    cfg = _config(tmp_path, model=TINY_MODEL, batch=4, val_every=0, progress=False)
+    assert main(["--data", str(dataset), "--out", str(run), "--config", cfg, "--steps", "1000", "--minutes",
+                 "0.000001"]) == 0
+    assert "stopped by the time (resume with: train --out" in capsys.readouterr().out
+    step = read_checkpoint(run / "last.ckpt").header["step"]
+    assert 0 <= step < 1000
+    assert main(["--out", str(run), "--resume", "--steps", str(step + 2), "--no-progress"]) == 0
+    assert read_checkpoint(run / "last.ckpt").header["step"] == step + 2
+
+
+def test_cuda_where_there_is_none_is_one_line(dataset: Path, tmp_path: Path, capsys: pytest.CaptureFixture,
+                                              monkeypatch: pytest.MonkeyPatch) -> None:
+    import model.device
+
+    monkeypatch.setattr(model.device, "cuda_available", lambda: False)
+    assert main(["--data", str(dataset), "--out", str(tmp_path / "r"), "--device", "cuda"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "torch sees no CUDA device here" in err[0]
+
+
+def test_the_card_records_a_gaussian_dataset(tmp_path: Path) -> None:
+    """A run on data rendered with another pixel filter records it in every checkpoint's card;
+    datasets of different filters are not mixed."""
+    from model.checkpoint import checkpoint_meta, pixel_filter
+
+    gaussian = write_synthetic_dataset(tmp_path / "g", scenes=2, res=(32, 32), spp=(4,), val_scenes=(1,))
+    config = json.loads((gaussian / "dataset.json").read_text())
+    (gaussian / "dataset.json").write_text(json.dumps({**config, "filter": {"type": "gaussian", "stddev": 0.5}}))
+    cfg = _config(tmp_path, model=TINY_MODEL, batch=2, val_every=1, progress=False, oidn=False)
+    assert main(["--data", str(gaussian), "--out", str(tmp_path / "r"), "--config", cfg, "--steps", "1"]) == 0
+    header = read_checkpoint(tmp_path / "r" / "best.ckpt").header
+    assert pixel_filter(header) == {"type": "gaussian", "stddev": 0.5}
+    assert checkpoint_meta(header)["hours"]["cpu"] > 0 and "recipe" not in checkpoint_meta(header)
+    box = write_synthetic_dataset(tmp_path / "b", scenes=2, res=(32, 32), spp=(4,), val_scenes=(1,))
+    assert main(["--data", str(gaussian), "--extra-data", str(box), "--out", str(tmp_path / "r2"), "--config", cfg,
+                 "--steps", "1"]) == 1

@@ -71,8 +71,8 @@ def card_meta(base: dict[str, Any], cpu_s: float, gpu_s: float, machine: str, pi
     if machine not in machines:
         machines.append(machine)
     meta: dict[str, Any] = {
-        "hours": {"cpu": round((base.get("cpu_s", 0.0) + cpu_s) / 3600.0, 4),
-                  "gpu": round((base.get("gpu_s", 0.0) + gpu_s) / 3600.0, 4)},
+        "hours": {"cpu": round((base.get("cpu_s", 0.0) + cpu_s) / 3600.0, 6),
+                  "gpu": round((base.get("gpu_s", 0.0) + gpu_s) / 3600.0, 6)},
         "hardware": machines, "pixel_filter": pixel_filter}
     if recipe:
         meta["recipe"] = dict(recipe)

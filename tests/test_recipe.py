@@ -1,0 +1,188 @@
+"""Recipes: parsing and its errors, the shipped recipes, and a tiny recipe run end to end through
+``train --recipe`` (16-px scenes rendered by Mitsuba, two stages, a kill and resume, a fine-tune)."""
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import pytest
+
+from imaging.errors import ConfigError
+from model.checkpoint import checkpoint_meta, pixel_filter, read_checkpoint
+from model.config import DEFAULT_TRAIN_MODEL
+from training.cli import main
+from training.recipe import load_recipe, parse_recipe, recipe_names
+from training.recipe_run import RecipeRun, run_recipe
+from training.train_config import TrainConfig
+
+TINY = """
+name = "tiny"
+[datasets.tiny16]
+families = ["cornell_box", "material_preview"]
+scenes = 3
+res = 16
+spp = [2, 8]
+ref_spp = 16
+seed = 0
+val_fraction = 0.5
+[[stages]]
+name = "first"
+data = ["tiny16"]
+preset = "flat-s"
+model = { layers = 2 }
+patch = 16
+batch = 4
+steps = 4
+lr_warmup = 0
+val_every = 2
+ckpt_every = 1
+log_every = 1
+threads = 1
+oidn = false
+[stages.measured]
+cpu_minutes = 0.1
+[[stages]]
+name = "second"
+data = ["tiny16"]
+init_from = "first"
+preset = "flat-s"
+model = { layers = 2 }
+patch = 16
+batch = 4
+steps = 3
+lr = 5e-4
+val_every = 3
+ckpt_every = 1
+log_every = 1
+threads = 1
+oidn = false
+[finetune]
+lr = 2e-4
+steps = 2
+"""
+
+
+def _parse(text: str) -> object:
+    return parse_recipe(text, Path("test.toml"))
+
+
+@pytest.mark.parametrize("change, message", [
+    (("preset = \"flat-s\"\nmodel = { layers = 2 }\npatch = 16\nbatch = 4\nsteps = 3", "preset = \"flat-x\""),
+     "unknown model preset 'flat-x' (valid: flat-s"),
+    (("init_from = \"first\"", "init_from = \"second\""), "init_from must name an earlier stage of this recipe (first)"),
+    (("data = [\"tiny16\"]\ninit_from", "data = [\"other\"]\ninit_from"), "data must list datasets of the recipe"),
+    (("lr = 5e-4", "lr = 5e-4\nlearning_rate = 1"), "unknown key(s) learning_rate"),
+    (("lr = 5e-4", "lr = 5e-4\nout = \"x\""), "unknown key(s) out"),
+    (("ref_spp = 16", "ref_spp = 15"), "reference spp must be even"),
+    (("families = [\"cornell_box\", \"material_preview\"]", "families = [\"cornel\"]"), "unknown family 'cornel'"),
+    (("val_fraction = 0.5", "val_fraction = 0.5\npixel_filter = \"blackman-harris\""),
+     "unknown pixel filter 'blackman-harris' (valid: box, tent, gaussian"),
+    (("steps = 3", "steps = 0"), "steps must be a positive integer"),
+])
+def test_bad_recipes_are_one_line_errors(change: tuple[str, str], message: str) -> None:
+    text = TINY.replace(*change, 1)
+    assert text != TINY
+    with pytest.raises(ConfigError) as exc:
+        _parse(text)
+    assert message in str(exc.value) and "\n" not in str(exc.value)
+
+
+def test_hash_names_what_is_trained_not_the_notes() -> None:
+    base = _parse(TINY)
+    noted = _parse(TINY.replace("cpu_minutes = 0.1", "cpu_minutes = 7\nhardware = \"x\"")
+                   .replace('name = "tiny"', 'name = "tiny"\ndescription = "notes"'))
+    assert noted.sha256 == base.sha256 and noted.description == "notes"
+    assert _parse(TINY.replace("lr = 5e-4", "lr = 4e-4")).sha256 != base.sha256
+    assert _parse(TINY.replace("seed = 0", "seed = 1")).sha256 != base.sha256
+
+
+def test_shipped_recipes_parse_and_start_from_scratch() -> None:
+    """Every shipped recipe parses; its first stage starts from scratch and every later warm start
+    names an earlier stage (so no stage needs a file no recipe makes)."""
+    names = recipe_names()
+    assert {"flat-s", "flat-s-lowspp", "unet-l", "unet-m-k5-lowspp", "smoke"} <= set(names)
+    for name in names:
+        recipe = load_recipe(name)
+        assert recipe.name == name and recipe.stages[0].init_from is None
+        for i, stage in enumerate(recipe.stages[1:], 1):
+            assert stage.init_from in {s.name for s in recipe.stages[:i]}
+
+
+def test_unknown_recipe_lists_the_shipped_ones(capsys: pytest.CaptureFixture) -> None:
+    assert main(["--recipe", "no-such", "--out", "x"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("train: error: unknown recipe 'no-such' (shipped: ") and "unet-m-k5-lowspp" in err
+
+
+def test_train_defaults_are_the_default_models_recipe() -> None:
+    """What ``train`` does without --recipe is the final stage of unet-m-k5-lowspp, the default
+    model's U-Net, in everything that shapes the network it learns (not the data or run control)."""
+    stage = load_recipe("unet-m-k5-lowspp").final
+    recipe = stage.train_config("o", ["d"], None)
+    defaults = TrainConfig(data="d", out="o")
+    assert defaults.model == DEFAULT_TRAIN_MODEL == recipe.model
+    for name in ("patch", "batch", "lr", "lr_warmup", "lr_cosine_steps", "lr_final", "steps", "gradient_weight",
+                 "loss_norm", "loss_space"):
+        assert getattr(defaults, name) == getattr(recipe, name), name
+
+
+def test_recipe_flags_refuse_what_the_recipe_sets(capsys: pytest.CaptureFixture) -> None:
+    assert main(["--recipe", "smoke", "--out", "x", "--lr", "0.1", "--preset", "flat-m"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert "--lr, --preset cannot be combined with --recipe" in err
+
+
+def test_dry_run_prints_the_commands(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    recipe = tmp_path / "tiny.toml"
+    recipe.write_text(TINY)
+    assert main(["--recipe", str(recipe), "--out", str(tmp_path / "run"), "--data-root", "D", "--dry-run"]) == 0
+    out = capsys.readouterr().out
+    assert "generate-dataset --scenes 3 --out D/tiny16 --res 16x16 --spp 2,8 --ref-spp 16" in out
+    assert f"--init-from {tmp_path / 'run' / 'first' / 'best.ckpt'}" in out
+    assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.slow
+def test_tiny_recipe_end_to_end_with_a_kill_and_a_fine_tune(tmp_path: Path,
+                                                             capsys: pytest.CaptureFixture) -> None:
+    """A recipe from nothing: its data rendered, stage one stopped after its first step (as a kill
+    would leave it) and resumed by the same call, stage two warm-started from stage one's best;
+    the model file's card names the recipe, its hours and the box filter; the same command again
+    does nothing; another recipe may not share the folder; a fine-tune on the rendered data."""
+    recipe = parse_recipe(TINY, tmp_path / "tiny.toml")
+    (tmp_path / "tiny.toml").write_text(TINY)
+    out, data = tmp_path / "run", tmp_path / "data"
+    run = RecipeRun(out=out, data_root=data, minutes=1e-6, control={"progress": False})
+    stopped = run_recipe(recipe, run, log=lambda line: None)
+    assert stopped.model is None and stopped.stopped_in == "first"
+    assert len((data / "tiny16" / "manifest.jsonl").read_text().splitlines()) == 3
+    assert not (out / "first" / "done.json").exists()
+
+    result = run_recipe(recipe, dataclasses.replace(run, minutes=None), log=lambda line: None)
+    assert result.model == out / "tiny.ckpt" and set(result.stages) == {"first", "second"}
+    log = [json.loads(line) for line in (out / "first" / "log.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in log if r["type"] == "train"] == [1, 2, 3, 4]
+    header = read_checkpoint(result.model).header
+    assert header["optimizer"] is None and header["step"] == read_checkpoint(out / "second" / "best.ckpt").header["step"]
+    meta = checkpoint_meta(header)
+    assert meta["recipe"] == {"name": "tiny", "sha256": recipe.sha256, "stage": "second"}
+    first = checkpoint_meta(read_checkpoint(out / "first" / "best.ckpt").header)
+    assert meta["hours"]["cpu"] > first["hours"]["cpu"] > 0 and meta["hours"]["gpu"] == 0
+    assert len(meta["hardware"]) == 1 and "cores" in meta["hardware"][0]
+    assert pixel_filter(header) == {"type": "box"} == meta["pixel_filter"]
+    assert header["train_config"]["init_from"] == str(out / "first" / "best.ckpt")
+
+    again = run_recipe(recipe, dataclasses.replace(run, minutes=None), log=lambda line: None)
+    assert again.model == result.model and again.stages == result.stages
+
+    other = parse_recipe(TINY.replace("lr = 5e-4", "lr = 4e-4"), tmp_path / "tiny.toml")
+    with pytest.raises(ConfigError, match="holds a run of recipe 'tiny'"):
+        run_recipe(other, run, log=lambda line: None)
+
+    tuned = tmp_path / "tuned"
+    assert main(["--recipe", str(tmp_path / "tiny.toml"), "--out", str(tuned), "--data", str(data / "tiny16"),
+                 "--init-from", str(result.model), "--no-progress"]) == 0
+    assert "recipe tiny done: " in capsys.readouterr().out
+    config = read_checkpoint(tuned / "tiny-finetuned.ckpt").header["train_config"]
+    assert config["init_from"] == str(result.model) and config["lr"] == 2e-4 and config["steps"] == 2
