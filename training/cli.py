@@ -48,8 +48,8 @@ _FLAGS = {  # argparse dest -> TrainConfig field
     "loss_norm": "loss_norm", "loss_space": "loss_space", "device": "device", "workers": "workers",
 }
 # flags a --recipe run takes (run control); the recipe sets everything else
-_RECIPE_FLAGS = {"recipe", "out", "data", "extra_data", "init_from", "minutes", "device", "threads", "workers",
-                 "progress", "data_root", "dry_run"}
+_RECIPE_FLAGS = {"recipe", "out", "data", "extra_data", "init_from", "minutes", "cpu_minutes", "device", "threads",
+                 "workers", "progress", "data_root", "dry_run"}
 _DEFAULTS = TrainConfig(data="-", out="-")
 
 
@@ -160,7 +160,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--extra-data", action="append", metavar="DIR",
                    help="another dataset folder to train and validate on (repeatable)")
     p.add_argument("--cpu-minutes", type=float,
-                   help="stop once the optimisation used this many process CPU minutes (all sittings)")
+                   help="stop once the optimisation used this many process CPU minutes (all sittings; with "
+                        "--recipe: each stage's)")
     p.add_argument("--micro-batch", type=int,
                    help="accumulate gradients over chunks of this size (faster; BatchNorm per chunk)")
     p.add_argument("--seed", type=int)
@@ -283,11 +284,14 @@ def recipe_run_from_args(args: argparse.Namespace) -> RecipeRun:
                    if dest not in _RECIPE_FLAGS and value not in (None, False))
     if given:
         raise ConfigError(f"{', '.join(given)} cannot be combined with --recipe (the recipe sets it; run control "
-                          "only: --data, --init-from, --minutes, --device, --threads, --workers, --data-root)")
+                          "only: --data, --init-from, --minutes, --cpu-minutes, --device, --threads, --workers, "
+                          "--data-root)")
     if args.extra_data and not args.data:
         raise ConfigError("--extra-data with --recipe needs --data (the recipe's own datasets are named in it)")
     control = {field: getattr(args, dest) for dest, field in _FLAGS.items()
                if dest in _RECIPE_FLAGS and dest not in ("data", "init_from") and getattr(args, dest) is not None}
+    if args.cpu_minutes is not None:  # each stage's own budget (a fine-tune has one stage)
+        control["cpu_budget_s"] = 60.0 * args.cpu_minutes
     return RecipeRun(out=Path(args.out), data_root=Path(args.data_root or "data"),
                      data=tuple([args.data, *(args.extra_data or [])]) if args.data else (),
                      init_from=shipped_checkpoint(args.init_from) if args.init_from else None,
@@ -310,8 +314,8 @@ def recipe_main(parser: OneLineParser, args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         return parser.interrupted("; run the same command again to resume")
     if result.model is None:
-        print(f"stopped in stage {result.stopped_in} after --minutes {args.minutes:g}; run the same command "
-              f"again to continue")
+        print(f"stopped in stage {result.stopped_in} by the command's time limit; run it again (with a larger "
+              "--cpu-minutes) to continue")
     else:
         print(f"recipe {recipe.name} done: {result.model}")
     return 0

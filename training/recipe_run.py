@@ -12,7 +12,8 @@ Datasets go to ``DATA_ROOT/<dataset name>`` (``--data-root``, default ``data``),
 other settings is refused, so recipes that share a dataset (by name and settings) render it once.
 After a kill, the same command continues: the dataset where it stopped, a stage from its
 ``last.ckpt``, later stages from the start. ``--minutes`` stops the whole command after that much
-wall time, leaving a stage resumable.
+wall time, ``--cpu-minutes`` each stage after that much optimisation CPU time, leaving the stage
+resumable (run again, with a larger budget to go further).
 
 With ``--data MINE`` (and ``--extra-data``), the recipe trains on those folders instead of its
 datasets; with ``--init-from MODEL`` as well, it fine-tunes: one stage, ``finetune``, with the final
@@ -191,8 +192,8 @@ def run_stage(recipe: Recipe, stage: Stage, run: RecipeRun, progress: ProgressFa
     log(f"stage {stage.name}: {'resuming at step ' + str(read_checkpoint(folder / 'last.ckpt').header['step']) if resume else 'starting'}"
         f" ({config.steps} steps, {config.model.arch}, data {', '.join(Path(d).name for d in (config.data, *config.extra_data))})")
     result = train(config, resume=resume, progress=progress, minutes=minutes, recipe=recipe.identity(stage.name))
-    if result.stopped == "time":
-        return None
+    if result.stopped == "time" or (result.stopped == "cpu budget" and "cpu_budget_s" in run.control):
+        return None  # stopped by this command's limit, not the recipe's: the same command goes on
     record = {"step": result.step, "best_psnr": result.best_psnr, "stopped": result.stopped}
     write_text_atomic(done, json.dumps(record) + "\n")
     return record
