@@ -2,7 +2,7 @@
 estimate of what N machines would give, from the measured per-scene and per-step costs.
 
     python -m benchmarks.scaleout [--quick] [--scenes 4] [--res 128] [--spp 4,16,64,128]
-        [--ref-spp 4096] [--steps 30] [--warmup-steps 5] [--preset fast] [--batch 64]
+        [--ref-spp 4096] [--steps 30] [--warmup-steps 5] [--preset flat-s] [--batch 64]
         [--machines 1,2,4,8,16] [--link-gbps 10] [--hop-latency-us 100] [--out FILE]
 
 Run it on an idle machine. Every setting records the CPU that other processes used meanwhile
@@ -202,7 +202,7 @@ def _train(setting: str, data: Path, out: Path, batch: int, threads: int, args: 
            extra: tuple[str, ...] = ()) -> dict[str, Any]:
     """One ``train`` run (``python -m training.cli``) with ``threads`` torch threads per process."""
     cmd = [sys.executable, "-m", "training.cli", "--data", str(data), "--out", str(out), "--preset", args.preset,
-           "--batch", str(batch), "--steps", str(args.steps), "--threads", str(threads), "--log-every", "1",
+           "--batch", str(batch), "--patch", "28", "--steps", str(args.steps), "--threads", str(threads), "--log-every", "1",
            "--val-every", "0", "--ckpt-every", str(args.steps), "--no-progress", *extra]
     env = {**BASE_ENV, "OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads)}
     start = time.perf_counter()

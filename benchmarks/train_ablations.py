@@ -1,6 +1,6 @@
 """What buys quality per CPU-minute: short training runs that differ in one choice each.
 
-Runs (same data, same seed, ``fast`` preset sizes unless noted, equal steps):
+Runs (same data, same seed, ``flat-s`` preset sizes unless noted, equal steps):
   baseline        log transfer, residual output, densenet, lr 1e-3
   pu              PU transfer instead of log
   direct          direct output instead of residual
@@ -30,7 +30,9 @@ from training.run_log import RunLog
 
 ROOT = Path(__file__).resolve().parents[1]
 
-BASE = ["--preset", "flat-s", "--transfer", "log", "--output", "residual", "--lr", "0.001"]
+# the settings of the recorded runs: the paper's batch, crops and step schedule, no warm-up
+BASE = ["--preset", "flat-s", "--transfer", "log", "--output", "residual", "--lr", "0.001", "--batch", "64",
+        "--patch", "28", "--lr-warmup", "0", "--lr-cosine-steps", "0"]
 RUNS: dict[str, list[str]] = {
     "baseline": [],
     "pu": ["--transfer", "pu"],
