@@ -49,3 +49,25 @@ def test_cuda_asked_where_there_is_none_stops_before_anything(tmp_path: Path) ->
     done = _run(tmp_path, "smoke", "2", str(tmp_path / "run"))
     assert done.returncode == 1 and "torch sees no CUDA device" in done.stderr
     assert not (tmp_path / "run").exists()
+
+
+def test_pack_slims_mitsuba_to_the_variants_training_renders_with(tmp_path: Path) -> None:
+    import zipfile
+
+    from benchmarks.gpu_pack import pack
+
+    names = ["mitsuba/__init__.py", "mitsuba/libmitsuba.so", "mitsuba/data/srgb.coeff",
+             *(f"mitsuba/{v}.cpython-312-x86_64-linux-gnu.so" for v in
+               ("scalar_rgb", "scalar_spectral", "llvm_ad_rgb", "llvm_ad_mono_polarized", "cuda_ad_rgb", "cuda_ad_spectral")),
+             "mitsuba/plugins/path.so"]
+    wheel = tmp_path / "mitsuba-3.9.1-cp312-cp312-manylinux_2_28_x86_64.whl"
+    other = tmp_path / "drjit-1.5.0-cp312-cp312-manylinux_2_28_x86_64.whl"
+    for path in (wheel, other):
+        with zipfile.ZipFile(path, "w") as z:
+            for name in names:
+                z.writestr(name, name)
+    kept = zipfile.ZipFile(pack(wheel, tmp_path / "out")).namelist()
+    assert kept == ["mitsuba/__init__.py", "mitsuba/libmitsuba.so",
+                    *(f"mitsuba/{v}.cpython-312-x86_64-linux-gnu.so" for v in ("scalar_rgb", "llvm_ad_rgb", "cuda_ad_rgb")),
+                    "mitsuba/plugins/path.so"]
+    assert zipfile.ZipFile(pack(other, tmp_path / "out")).namelist() == names  # other wheels as they are

@@ -186,3 +186,6 @@ def test_tiny_recipe_end_to_end_with_a_kill_and_a_fine_tune(tmp_path: Path,
     assert "recipe tiny done: " in capsys.readouterr().out
     config = read_checkpoint(tuned / "tiny-finetuned.ckpt").header["train_config"]
     assert config["init_from"] == str(result.model) and config["lr"] == 2e-4 and config["steps"] == 2
+    assert main(["--recipe", "smoke", "--out", str(tmp_path / "t2"), "--data", str(data / "tiny16"),
+                 "--init-from", str(result.model)]) == 1
+    assert "not the network recipe smoke trains (flat-s)" in capsys.readouterr().err

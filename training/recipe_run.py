@@ -74,6 +74,10 @@ def stages_to_run(recipe: Recipe, run: RecipeRun) -> list[Stage]:
     if not run.data:
         raise ConfigError("--init-from with --recipe fine-tunes a model on your data: give --data too")
     final = recipe.final
+    source = read_checkpoint(run.init_from).header.get("model_config")
+    if source != final.model.to_dict():
+        raise ConfigError(f"{run.init_from}: not the network recipe {recipe.name} trains ({final.network}); "
+                          "fine-tune it with the recipe that made it")
     fields = {**final.fields, **recipe.finetune}
     return [dataclasses.replace(final, name=FINETUNE, init_from=None, fields=fields, measured={})]
 
