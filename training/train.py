@@ -44,8 +44,8 @@ from training.validate import Validator
 
 DATASET_ID_STRIDE = 1_000_000  # scene ids of the k-th dataset of a run are its indices + k * this
 
-# TrainConfig fields added after the first runs, with the values those runs trained with (their
-# saved configs lack the key; the defaults have since changed)
+# TrainConfig fields that the configs of the first runs lack, with the values those runs trained with
+# (the defaults differ)
 _UNRECORDED = {"lr_warmup": 0, "lr_cosine_steps": 0, "lr_final": 0.01}
 # dataset.json fields a resumed run must see unchanged
 _DATA_KEYS = ("spp", "ref_spp", "filter", "aovs", "variance")
@@ -87,7 +87,7 @@ def resume_config(out: str | Path, overrides: dict[str, Any]) -> TrainConfig:
     saved = ckpt.header.get("train_config")
     if not isinstance(saved, dict):
         raise ConfigError(f"{ckpt.path}: holds no training config to resume from")
-    # a run saved before these fields existed trained with their values of the time
+    # a saved config without these fields trained with these values
     base = TrainConfig.from_dict({**_UNRECORDED, **saved})
     changed = sorted(k for k, v in overrides.items() if k not in RESUMABLE_OVERRIDES and getattr(base, k, v) != v)
     if changed:
