@@ -417,3 +417,16 @@ def test_the_card_records_a_gaussian_dataset(tmp_path: Path) -> None:
     box = write_synthetic_dataset(tmp_path / "b", scenes=2, res=(32, 32), spp=(4,), val_scenes=(1,))
     assert main(["--data", str(gaussian), "--extra-data", str(box), "--out", str(tmp_path / "r2"), "--config", cfg,
                  "--steps", "1"]) == 1
+
+
+def test_batches_from_worker_processes_train_the_same_run(dataset: Path, tmp_path: Path) -> None:
+    """--workers N (what a GPU run uses): the batches come from forked processes, and the run is the
+    one the prefetch thread gives."""
+    cfg = _config(tmp_path, model=TINY_MODEL, batch=4, val_every=0, progress=False, threads=1)
+    for name, workers in (("thread", "0"), ("processes", "2")):
+        assert main(["--data", str(dataset), "--out", str(tmp_path / name), "--config", cfg, "--steps", "6",
+                     "--workers", workers]) == 0
+    a, b = (read_checkpoint(tmp_path / name / "last.ckpt") for name in ("thread", "processes"))
+    assert b.header["train_config"]["workers"] == 2
+    for key, value in a.prefixed("model/").items():
+        torch.testing.assert_close(b.tensors[f"model/{key}"], value, rtol=0, atol=0)
