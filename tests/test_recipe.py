@@ -180,6 +180,12 @@ def test_tiny_recipe_end_to_end_with_a_kill_and_a_fine_tune(tmp_path: Path,
     with pytest.raises(ConfigError, match="holds a run of recipe 'tiny'"):
         run_recipe(other, run, log=lambda line: None)
 
+    limited = tmp_path / "limited"  # a fine-tune stopped by its budget still leaves its model so far
+    assert main(["--recipe", str(tmp_path / "tiny.toml"), "--out", str(limited), "--data", str(data / "tiny16"),
+                 "--init-from", str(result.model), "--cpu-minutes", "0.000001", "--no-progress"]) == 0
+    assert "stopped in stage finetune by the command's limit; the model so far: " in capsys.readouterr().out
+    assert (limited / "tiny-finetuned.ckpt").exists() and not (limited / "finetune" / "done.json").exists()
+
     tuned = tmp_path / "tuned"
     assert main(["--recipe", str(tmp_path / "tiny.toml"), "--out", str(tuned), "--data", str(data / "tiny16"),
                  "--init-from", str(result.model), "--no-progress"]) == 0

@@ -313,9 +313,10 @@ def recipe_main(parser: OneLineParser, args: argparse.Namespace) -> int:
         return parser.fail(exc)
     except KeyboardInterrupt:
         return parser.interrupted("; run the same command again to resume")
-    if result.model is None:
-        print(f"stopped in stage {result.stopped_in} by the command's time limit; run it again (with a larger "
-              "--cpu-minutes) to continue")
+    if result.stopped_in is not None:
+        so_far = f"; the model so far: {result.model}" if result.model else ""
+        print(f"stopped in stage {result.stopped_in} by the command's limit{so_far}; run it again (with a larger "
+              "budget) to continue")
     else:
         print(f"recipe {recipe.name} done: {result.model}")
     return 0

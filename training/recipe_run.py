@@ -59,8 +59,8 @@ class RecipeRun:
 
 @dataclass(frozen=True)
 class RecipeResult:
-    """What a command did: the model file (None until the final stage finished), the stage it
-    stopped in (``stopped_in``; None: all finished) and each finished stage's ``done.json``."""
+    """What a command did: the model file (None until the last stage has a checkpoint), the stage
+    it stopped in (``stopped_in``; None: all finished) and each finished stage's ``done.json``."""
 
     model: Path | None
     stopped_in: str | None
@@ -203,10 +203,23 @@ def run_stage(recipe: Recipe, stage: Stage, run: RecipeRun, progress: ProgressFa
     return record
 
 
+def _model_file(recipe: Recipe, stages: list[Stage], run: RecipeRun) -> Path | None:
+    """Write the model: the last stage's best checkpoint (its last without validation) without the
+    optimiser state; None while that stage has no checkpoint."""
+    folder = run.out / stages[-1].name
+    source = next((p for p in (folder / "best.ckpt", folder / "last.ckpt") if p.exists()), None)
+    if source is None:
+        return None
+    model = run.out / (f"{recipe.name}-{FINETUNE}d.ckpt" if run.init_from else f"{recipe.name}.ckpt")
+    strip_optimizer(source, model)
+    return model
+
+
 def run_recipe(recipe: Recipe, run: RecipeRun, progress: ProgressFactory | None = None,
                data_progress: ProgressFactory | None = None, log: Log = print) -> RecipeResult:
     """Run ``recipe`` as ``run`` says (module docstring). Raises what ``train`` and
-    ``generate-dataset`` raise."""
+    ``generate-dataset`` raise. When this command's limit stops the last stage, the model file
+    holds its best checkpoint so far (a fine-tune's result after ``--minutes``)."""
     import time
 
     start = time.monotonic()
@@ -217,14 +230,9 @@ def run_recipe(recipe: Recipe, run: RecipeRun, progress: ProgressFactory | None 
     finished: dict[str, dict[str, Any]] = {}
     for stage in stages:
         left = None if run.minutes is None else run.minutes - (time.monotonic() - start) / 60.0
-        if left is not None and left <= 0:
-            return RecipeResult(None, stage.name, finished)
-        record = run_stage(recipe, stage, run, progress, left, log)
+        record = None if left is not None and left <= 0 else run_stage(recipe, stage, run, progress, left, log)
         if record is None:
-            return RecipeResult(None, stage.name, finished)
+            last = stage is stages[-1]
+            return RecipeResult(_model_file(recipe, stages, run) if last else None, stage.name, finished)
         finished[stage.name] = record
-    final = run.out / stages[-1].name
-    best = final / "best.ckpt"
-    model = run.out / (f"{recipe.name}-{FINETUNE}d.ckpt" if run.init_from else f"{recipe.name}.ckpt")
-    strip_optimizer(best if best.exists() else final / "last.ckpt", model)
-    return RecipeResult(model, None, finished)
+    return RecipeResult(_model_file(recipe, stages, run), None, finished)
