@@ -361,7 +361,8 @@ def test_training_at_paper_lr_on_hdr_fireflies(tmp_path: Path, capsys: pytest.Ca
     data = write_synthetic_dataset(tmp_path / "ds", scenes=2, res=(32, 32), spp=(1, 4), val_scenes=(1,))
     _hdr_fireflies(data, np.random.default_rng(0))
     config = tmp_path / "config.json"
-    config.write_text(json.dumps({"model": dataclasses.asdict(TINY), "batch": 8, "lr": 0.01, "log_every": 1,
+    config.write_text(json.dumps({"model": dataclasses.asdict(TINY), "patch": {"size": 28}, "batch": 8, "lr": 0.01,
+                                  "lr_warmup": 0, "lr_cosine_steps": 0, "log_every": 1,
                                   "val_every": 4, "ckpt_every": 2, "progress": False, "oidn": False,
                                   "threads": 1}))
     run = tmp_path / "run"
