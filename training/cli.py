@@ -126,7 +126,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--lr", type=float, help=f"Adam base learning rate (default {d.lr:g})")
     p.add_argument("--grad-clip", type=float, help="clip the gradient L2 norm to this (default off)")
     p.add_argument("--init-from", metavar="CKPT",
-                   help="start from this checkpoint's weights (a file, or a shipped model's name: the same model "
+                   help="start from this checkpoint's weights (a file, or a shipped model's name): the same model "
                         "(a warm start), or a densenet of other depth (deepened to the model's layers, or its "
                         "first layers); with --recipe and --data: fine-tune it on that data")
     p.add_argument("--converged-pairs", action="store_const", const=True,
@@ -337,8 +337,10 @@ def main(argv: list[str] | None = None) -> int:
         config, resume = config_from_args(args)
         if args.nproc is not None and args.nproc < 1:
             raise ConfigError(f"--nproc must be >= 1, got {args.nproc}")
-        if config.cpu_budget_s and ((args.nproc or 1) > 1 or (rank is not None and rank.world > 1)):
-            raise ConfigError("--cpu-minutes applies to one process only (DDP ranks would stop at different steps)")
+        ddp = (args.nproc or 1) > 1 or (rank is not None and rank.world > 1)
+        if ddp and (config.cpu_budget_s or args.minutes is not None):
+            raise ConfigError("--cpu-minutes and --minutes apply to one process only (DDP ranks would stop at "
+                              "different steps)")
         if rank is None and args.nproc is not None and args.nproc > 1:
             ddp_config(config, args.nproc, resume)  # refuse before starting any process
             launch(args.nproc, sys.argv[1:] if argv is None else argv, Path(args.out), threads=config.threads,
