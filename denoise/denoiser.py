@@ -27,6 +27,7 @@ from denoise.ensemble import combine_in_place
 from denoise.image_noise import NoiseStats, noise_stats
 from denoise.noise_guard import DEFAULT_STRENGTH, guard_in_place, strength_for
 from model.registry import SEPARATOR, Choice, Selection, range_suffix, registry
+from model.checkpoint import pixel_filter
 
 if TYPE_CHECKING:
     from rendering.render import RenderResult
@@ -113,7 +114,7 @@ class Network:
     @property
     def meta_filter(self) -> str:
         """The pixel filter of its training renders, as its checkpoint records it (box when absent)."""
-        return str((self.meta.get("data_config") or {}).get("filter") or "box")
+        return pixel_filter(self.meta)["type"]
 
     def covers(self, spp: int | None) -> bool:
         """True if it runs on renders of ``spp`` samples per pixel: always for a model trained on every

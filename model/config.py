@@ -12,14 +12,15 @@ name never means a checkpoint. Parameter counts for ``aux_inputs=False``, checke
 * ``flat-l``  — flat densenet, k=8,  L=30, first conv 16 wide: 220,192 parameters (plaincnn: width 22, 224,824)
 * ``paper``   — flat densenet, k=12, L=20, first conv 24 wide: 261,888 parameters (plaincnn: width 26, 264,832)
 * ``unet-s``, ``unet-m``, ``unet-l`` — the multi-scale dense U-Net (:mod:`model.unet`), five
-  resolutions, growing in width and depth (docs/multiscale.md)
+  resolutions, growing in width and depth (docs/design.md)
 
 ``flat-s``, ``flat-m`` and ``flat-l`` share growth rate and width, so each is a prefix of the next:
 the deeper ones can be warm-started from the shallower (:mod:`model.grow`). ``paper`` is Kim &
 Lee's network (one dense block of L=20 bottleneck layers; k=12 is our choice, the paper gives
 none). With ``aux_inputs`` the first conv takes 15 instead of 9 channels (+4,704 parameters,
-+7,056 for ``paper``). The network ``train`` builds when no preset is named is the default model's
-(``unet-m`` with the predicted 5x5 filter, :data:`DEFAULT_TRAIN_MODEL`).
++7,056 for ``paper``). The network ``train`` builds when no preset is named is
+``unet-m`` with the predicted 5x5 filter (:data:`DEFAULT_TRAIN_MODEL`), the registry's
+``unet-m-k5-lowspp``.
 """
 from __future__ import annotations
 
@@ -173,8 +174,8 @@ PRESETS: dict[str, ModelConfig] = {
     "unet-m": ModelConfig(arch="dense_unet", levels=4, layers=2, growth=12, init_features=32, transfer="pu"),
     "unet-l": ModelConfig(arch="dense_unet", levels=4, layers=3, growth=16, init_features=48, transfer="pu"),
 }
-# What ``train`` builds when no preset is named: the default model's U-Net (unet-m with the predicted
-# 5x5 filter, the network of training/recipes/unet-m-k5-lowspp.toml).
+# What ``train`` builds when no preset is named: unet-m with the predicted 5x5 filter, the network of
+# the registry's unet-m-k5-lowspp (training/recipes/unet-m-k5-lowspp.toml).
 DEFAULT_TRAIN_MODEL = dataclasses.replace(PRESETS["unet-m"], kernel=5)
 
 

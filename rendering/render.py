@@ -45,7 +45,7 @@ class RenderResult:
     variant: str = ""
     variance: np.ndarray | None = None  # HxWx3 variance of ``rgb``'s estimate (``halves`` renders)
     crops: int = 1  # film crops rendered one after the other (rendering.render_crops)
-    pixel_filter: str = "box"  # the film's reconstruction filter (rendering.scene_io forces a box)
+    pixel_filter: str = "box"  # the film's reconstruction filter (a box unless the prepared scene named another)
 
 
 def _one_line(exc: BaseException) -> str:
@@ -80,6 +80,9 @@ def load_scene(prepared: PreparedScene) -> Any:
     _check_filter(scene, prepared.source, prepared.pixel_filter["type"])
     _check_renderable(scene, prepared.source)
     return scene
+
+
+_FILTER_NAMES = {cls: name for name, cls in FILTER_CLASSES.items()}  # BoxFilter -> box
 
 
 def _filter_class(sensor: Any) -> str:
@@ -272,7 +275,7 @@ def render_loaded(
     seconds = time.perf_counter() - start
     return RenderResult(rgb=outputs[0], aovs=dict(zip(aovs, outputs[1:])), spp=spp, seed=seed,
                         nonfinite=nonfinite, seconds=seconds, variant=mi.variant(), variance=variance,
-                        crops=len(crops))
+                        crops=len(crops), pixel_filter=_FILTER_NAMES.get(filter_class(scene), filter_class(scene)))
 
 
 def render(

@@ -70,7 +70,8 @@ def _parse(text: str) -> object:
 @pytest.mark.parametrize("change, message", [
     (("preset = \"flat-s\"\nmodel = { layers = 2 }\npatch = 16\nbatch = 4\nsteps = 3", "preset = \"flat-x\""),
      "unknown model preset 'flat-x' (valid: flat-s"),
-    (("init_from = \"first\"", "init_from = \"second\""), "init_from must name an earlier stage of this recipe (first)"),
+    (("init_from = \"first\"", "init_from = \"second\""),
+     "init_from must name an earlier stage of this recipe (first)"),
     (("data = [\"tiny16\"]\ninit_from", "data = [\"other\"]\ninit_from"), "data must list datasets of the recipe"),
     (("lr = 5e-4", "lr = 5e-4\nlearning_rate = 1"), "unknown key(s) learning_rate"),
     (("lr = 5e-4", "lr = 5e-4\nout = \"x\""), "unknown key(s) out"),
@@ -101,12 +102,38 @@ def test_shipped_recipes_parse_and_start_from_scratch() -> None:
     """Every shipped recipe parses; its first stage starts from scratch and every later warm start
     names an earlier stage (so no stage needs a file no recipe makes)."""
     names = recipe_names()
-    assert {"flat-s", "flat-s-lowspp", "unet-l", "unet-m-k5-lowspp", "smoke"} <= set(names)
+    assert {"flat-s-allspp", "flat-s-lowspp", "unet-l-allspp", "unet-m-k5-lowspp", "unet-m-k5-lowspp-b",
+            "smoke"} <= set(names)
     for name in names:
         recipe = load_recipe(name)
         assert recipe.name == name and recipe.stages[0].init_from is None
         for i, stage in enumerate(recipe.stages[1:], 1):
             assert stage.init_from in {s.name for s in recipe.stages[:i]}
+
+
+def test_every_registry_checkpoint_has_its_recipe_and_a_fine_tune_starts_from_it(
+        capsys: pytest.CaptureFixture, tmp_path: Path) -> None:
+    """The registry's cards name a recipe each, and ``--init-from`` takes a registry checkpoint's
+    name (the network must be the recipe's; an entry, an ensemble, is refused)."""
+    from model.registry import registry
+
+    shipped = registry()
+    assert {card.recipe for card in shipped.checkpoints.values()} <= set(recipe_names())
+    for name, card in shipped.checkpoints.items():
+        assert card.recipe == name and load_recipe(name).final.model == \
+            load_model_config(shipped.path_of(name)), name
+    assert main(["--recipe", "unet-m-k5-lowspp", "--out", str(tmp_path / "r"), "--data", "mine", "--init-from",
+                 "unet-m-k5-lowspp", "--dry-run"]) == 0
+    assert f"--init-from {shipped.path_of('unet-m-k5-lowspp')}" in capsys.readouterr().out
+    assert main(["--recipe", "unet-m-k5-lowspp", "--out", str(tmp_path / "r"), "--data", "mine", "--init-from",
+                 "fast"]) == 1
+    assert "--init-from fast: a registry entry (an ensemble), not one network" in capsys.readouterr().err
+
+
+def load_model_config(path: Path) -> object:
+    from model.config import ModelConfig
+
+    return ModelConfig.from_dict(read_checkpoint(path).header["model_config"])
 
 
 def test_unknown_recipe_lists_the_shipped_ones(capsys: pytest.CaptureFixture) -> None:
@@ -164,7 +191,8 @@ def test_tiny_recipe_end_to_end_with_a_kill_and_a_fine_tune(tmp_path: Path,
     log = [json.loads(line) for line in (out / "first" / "log.jsonl").read_text().splitlines()]
     assert [r["step"] for r in log if r["type"] == "train"] == [1, 2, 3, 4]
     header = read_checkpoint(result.model).header
-    assert header["optimizer"] is None and header["step"] == read_checkpoint(out / "second" / "best.ckpt").header["step"]
+    best = read_checkpoint(out / "second" / "best.ckpt").header
+    assert header["optimizer"] is None and header["step"] == best["step"]
     meta = checkpoint_meta(header)
     assert meta["recipe"] == {"name": "tiny", "sha256": recipe.sha256, "stage": "second"}
     first = checkpoint_meta(read_checkpoint(out / "first" / "best.ckpt").header)

@@ -6,7 +6,7 @@
     train --out RUN_DIR --resume [--steps N]
     train --nproc N ...     (DDP on N local processes via torchrun; or: torchrun ... -m training.cli ...)
 
-Precedence for a new run: defaults (the default model's training, :mod:`training.train_config`) <
+Precedence for a new run: defaults (unet-m-k5-lowspp's training, :mod:`training.train_config`) <
 ``--config`` JSON (any TrainConfig fields; ``"model"`` may be a full ModelConfig object or
 ``{"preset": "flat-s", ...overrides}``) < flags. On ``--resume`` the config comes from
 RUN_DIR/last.ckpt and only run-control flags (steps, intervals, speed options, device, data path)
@@ -69,7 +69,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = OneLineParser(prog="train",
                       description="Train a denoiser: a shipped model from its recipe (--recipe), a fine-tune of one "
                                   "on your data, or any network on a dataset. Without --recipe the defaults are "
-                                  "the training of the default model's U-Net (recipe unet-m-k5-lowspp's stage: "
+                                  "the training of the U-Net every registry entry runs up to 16 spp (recipe "
+                                  "unet-m-k5-lowspp: "
                                   f"unet-m with a 5x5 filter, {d.patch.size}px crops, batch {d.batch}, lr {d.lr:g} "
                                   f"with {d.lr_warmup} warm-up steps and a cosine to {d.lr_final:g} of it over the "
                                   f"run, {d.steps} steps).",
@@ -207,17 +208,21 @@ def _model_config(base: Any, args: argparse.Namespace) -> ModelConfig:
 
 
 def shipped_checkpoint(name: str) -> str:
-    """The checkpoint file of ``--init-from NAME``: NAME itself when it is a file, else the shipped
-    model of that name (model/weights/NAME.ckpt). Raises :class:`ConfigError` listing them."""
-    from denoise.denoiser import WEIGHTS_DIR
+    """The checkpoint file of ``--init-from NAME``: NAME itself when it is a file, else the registry
+    checkpoint of that name (``unet-m-k5-lowspp``; a retired name maps to its successor). Raises
+    :class:`ConfigError` listing the registry's checkpoints (an entry such as ``fast`` is an
+    ensemble: no one network to start from)."""
+    from model.registry import registry
 
     if Path(name).is_file():
         return name
-    path = WEIGHTS_DIR / f"{name}.ckpt"
-    if path.is_file():
+    shipped = registry()
+    path = None if name in shipped.names else shipped.path_of(name)  # an entry's name means the entry
+    if path is not None:
         return str(path)
-    shipped = sorted(p.stem for p in WEIGHTS_DIR.glob("*.ckpt"))
-    raise ConfigError(f"--init-from {name}: no such checkpoint file or shipped model (shipped: {', '.join(shipped)})")
+    kind = "a registry entry (an ensemble), not one network" if name in shipped.names else \
+        "no such checkpoint file or registry checkpoint"
+    raise ConfigError(f"--init-from {name}: {kind}; the registry's checkpoints: {', '.join(shipped.checkpoints)}")
 
 
 def config_from_args(args: argparse.Namespace) -> tuple[TrainConfig, bool]:

@@ -195,8 +195,8 @@ def _stage(table: dict[str, Any], index: int, datasets: dict[str, DatasetSpec], 
     fields = {f.name for f in dataclasses.fields(TrainConfig)}
     unknown = sorted(set(table) - _STAGE_KEYS - (fields - _RUNNER_FIELDS))
     if unknown:
-        raise ConfigError(f"{label}: unknown key(s) {', '.join(unknown)} (a stage takes {', '.join(sorted(_STAGE_KEYS))} "
-                          "and TrainConfig fields)")
+        raise ConfigError(f"{label}: unknown key(s) {', '.join(unknown)} (a stage takes "
+                          f"{', '.join(sorted(_STAGE_KEYS))} and TrainConfig fields)")
     data = table.get("data")
     if not isinstance(data, list) or not data or any(d not in datasets for d in data):
         raise ConfigError(f"{label}: data must list datasets of the recipe ({', '.join(datasets) or 'none'}), "

@@ -33,6 +33,7 @@ from dataset_gen.generate import generate_dataset
 from imaging.atomic_io import write_text_atomic
 from imaging.errors import ConfigError, DatasetError
 from model.checkpoint import read_checkpoint, strip_optimizer
+from model.config import ModelConfig
 from training.dataset import read_manifest
 from training.recipe import DatasetSpec, Recipe, Stage
 from training.train import resume_config, train
@@ -74,8 +75,11 @@ def stages_to_run(recipe: Recipe, run: RecipeRun) -> list[Stage]:
     if not run.data:
         raise ConfigError("--init-from with --recipe fine-tunes a model on your data: give --data too")
     final = recipe.final
-    source = read_checkpoint(run.init_from).header.get("model_config")
-    if source != final.model.to_dict():
+    try:
+        source = ModelConfig.from_dict(read_checkpoint(run.init_from).header.get("model_config"))
+    except ConfigError:
+        source = None
+    if source != final.model:
         raise ConfigError(f"{run.init_from}: not the network recipe {recipe.name} trains ({final.network}); "
                           "fine-tune it with the recipe that made it")
     fields = {**final.fields, **recipe.finetune}
@@ -107,8 +111,8 @@ def plan(recipe: Recipe, run: RecipeRun) -> list[str]:
         needed = dict.fromkeys(name for stage in stages for name in stage.data)
         lines += [recipe.datasets[name].command(str(run.data_root)) for name in needed]
     for stage in stages:
-        config = stage.train_config(run.out / stage.name, stage_data(recipe, stage, run), stage_init(recipe, stage, run),
-                                    run.control)
+        config = stage.train_config(run.out / stage.name, stage_data(recipe, stage, run),
+                                    stage_init(recipe, stage, run), run.control)
         words = [f"train --data {config.data}"] + [f"--extra-data {d}" for d in config.extra_data]
         words += [f"--out {config.out}"] + ([f"--init-from {config.init_from}"] if config.init_from else [])
         settings = ", ".join(f"{k} {v}" for k, v in {"network": stage.network, "patch": stage.patch.size,
@@ -193,8 +197,9 @@ def run_stage(recipe: Recipe, stage: Stage, run: RecipeRun, progress: ProgressFa
     wanted = stage.train_config(folder, stage_data(recipe, stage, run), stage_init(recipe, stage, run), run.control)
     resume = (folder / "last.ckpt").exists()
     config = _resumed_config(folder, wanted) if resume else wanted
-    log(f"stage {stage.name}: {'resuming at step ' + str(read_checkpoint(folder / 'last.ckpt').header['step']) if resume else 'starting'}"
-        f" ({config.steps} steps, {config.model.arch}, data {', '.join(Path(d).name for d in (config.data, *config.extra_data))})")
+    where = f"resuming at step {read_checkpoint(folder / 'last.ckpt').header['step']}" if resume else "starting"
+    data = ", ".join(Path(d).name for d in (config.data, *config.extra_data))
+    log(f"stage {stage.name}: {where} ({config.steps} steps, {config.model.arch}, data {data})")
     result = train(config, resume=resume, progress=progress, minutes=minutes, recipe=recipe.identity(stage.name))
     if result.stopped == "time" or (result.stopped == "cpu budget" and "cpu_budget_s" in run.control):
         return None  # stopped by this command's limit, not the recipe's: the same command goes on

@@ -1,6 +1,6 @@
 """The typed training configuration, filled by ``training.cli`` and saved as JSON beside each run.
 
-The defaults are the training of the default model's U-Net (training/recipes/unet-m-k5-lowspp.toml):
+The defaults are the training of the registry's unet-m-k5-lowspp (training/recipes/unet-m-k5-lowspp.toml):
 ``unet-m`` with the predicted 5x5 filter, 128x128 crops, batch 8, Adam at lr 1e-3 with 100 warm-up
 steps and a cosine decay over the whole run to 2% of it, 60,000 steps. Kim & Lee's schedule (lr
 0.01 times 0.9 every 10,000 steps, batch 64, 28x28 crops) measured worse: lr 0.01 throws the
