@@ -406,8 +406,8 @@ class Denoiser:
         if len(members) > 1:  # each further output is one more image beside ``out``
             combine_in_place(rgb, [out, *(run(m) for m in members[1:])], variance, self.max_bytes)
         network = None
-        if keep_network:  # the guard changes ``out`` in place
-            network = out.copy() if variance is not None else out
+        if keep_network:  # the guard and the energy correction change ``out`` in place
+            network = out.copy() if variance is not None or self.energy is not None else out
         weight = weights = None
         if variance is not None:
             weights = np.empty((height, width, 1), np.float32)

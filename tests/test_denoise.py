@@ -106,6 +106,20 @@ def test_energy_correction_follows_the_guard(ckpt: Path, with_variance: bool) ->
     assert corrected.energy_factor == factor and plain.energy_factor is None
 
 
+def test_bare_network_output_is_not_energy_corrected(tmp_path: Path) -> None:
+    """Without a variance (no guard) but with the energy correction, ``network`` is the network's
+    output as a denoiser without the correction gives it: its own array, not the corrected image
+    (a random direct-output network: its local means are far from the render's)."""
+    ckpt = write_tiny_checkpoint(tmp_path / "direct.ckpt", ModelConfig(layers=3, growth=4, init_features=8,
+                                                                        output="direct"))
+    img = _image(61, 47, seed=7)
+    bare = Denoiser(ckpt, energy=None).denoise_array(img).image
+    res = Denoiser(ckpt).denoise_array(img, keep_network=True)
+    assert res.energy_factor is not None and not np.array_equal(res.image, bare)  # the correction acted
+    assert not np.shares_memory(res.network, res.image)
+    assert np.array_equal(res.network, bare)
+
+
 def test_count_invalid_in_row_blocks() -> None:
     img = _image(9, 7)
     img[0, 0, 0], img[4, 6, 2], img[8, 0, 1], img[5, 5, 0] = np.nan, -np.inf, -3.0, np.inf

@@ -60,6 +60,20 @@ def test_blender_layers_and_colour_pick(tmp_path: Path, rng: np.random.Generator
     assert albedo.name == "ViewLayer.Denoising Albedo" and normal.name == "ViewLayer.Denoising Normal"
 
 
+def test_a_named_colour_layer_wins_over_other_passes(tmp_path: Path, rng: np.random.Generator) -> None:
+    """Blender with render passes: ViewLayer.Combined beside the Emit and DiffCol passes (colour
+    layers by their channels, no colour by their names) is the one picked; without it, the passes
+    are ambiguous."""
+    channels = {**planes(rng, "ViewLayer.Combined", "RGBA", np.float16), **planes(rng, "ViewLayer.Emit", "RGB"),
+                **planes(rng, "ViewLayer.DiffCol", "RGB")}
+    OpenEXR.File({}, dict(channels)).write(str(tmp_path / "passes.exr"))
+    assert pick_color_layer(read_exr_file(tmp_path / "passes.exr")).name == "ViewLayer.Combined"
+    passes = {k: v for k, v in channels.items() if "Combined" not in k}
+    OpenEXR.File({}, dict(passes)).write(str(tmp_path / "only.exr"))
+    with pytest.raises(ExrError, match=r"several colour layers \('ViewLayer.DiffCol', 'ViewLayer.Emit'\)"):
+        pick_color_layer(read_exr_file(tmp_path / "only.exr"))
+
+
 def test_mitsuba_aov_film_picks_the_bare_rgb(tmp_path: Path, rng: np.random.Generator) -> None:
     OpenEXR.File({}, mitsuba_aov(rng)).write(str(tmp_path / "m.exr"))
     exr = read_exr_file(tmp_path / "m.exr")

@@ -60,6 +60,61 @@ def test_all_metrics_keys(rng) -> None:
     assert all(np.isfinite(v) for v in out.values())
 
 
+def reference_ssim_map(x: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    """SSIM per pixel and channel as Wang et al. 2004 define it, computed here from the paper and
+    not from the module: display values x/(1+x) to the power 1/2.2 (negatives 0), one 11x11 2-D
+    Gaussian window of standard deviation 1.5 normalised to sum 1, images mirrored at the edges
+    (symmetric padding, as the module promises), means, variances and covariance as weighted sums
+    over each pixel's window, K1 = 0.01, K2 = 0.03, peak 1."""
+    def display(v: np.ndarray) -> np.ndarray:
+        v = np.maximum(v.astype(np.float64), 0.0)
+        return (v / (1.0 + v)) ** (1.0 / 2.2)
+
+    dy, dx = np.mgrid[-5:6, -5:6]
+    window = np.exp(-(dx * dx + dy * dy) / (2.0 * 1.5 * 1.5))
+    window /= window.sum()
+
+    def local_mean(v: np.ndarray) -> np.ndarray:
+        padded = np.pad(v, ((5, 5), (5, 5), (0, 0)), mode="symmetric")
+        return np.einsum("hwcij,ij->hwc", np.lib.stride_tricks.sliding_window_view(padded, (11, 11), axis=(0, 1)),
+                         window)
+
+    a, b = display(x), display(ref)
+    mu_a, mu_b = local_mean(a), local_mean(b)
+    var_a, var_b = local_mean(a * a) - mu_a**2, local_mean(b * b) - mu_b**2
+    cov = local_mean(a * b) - mu_a * mu_b
+    c1, c2 = 0.01**2, 0.03**2
+    return (2 * mu_a * mu_b + c1) * (2 * cov + c2) / ((mu_a**2 + mu_b**2 + c1) * (var_a + var_b + c2))
+
+
+@pytest.mark.parametrize("h, w", [(1, 1), (7, 5), (23, 31)])
+def test_ssim_is_the_papers_ssim(rng, h: int, w: int) -> None:
+    """Against :func:`reference_ssim_map` (window, sigma, constants, tonemap: any of them changed
+    moves the mean of a noisy image by far more than rounding)."""
+    ref = (rng.random((h, w, 3)) * 4).astype(np.float32)
+    x = np.abs(ref + rng.normal(0, 0.5, ref.shape)).astype(np.float32)
+    expected = reference_ssim_map(x, ref)
+    assert metrics.ssim(x, ref) == pytest.approx(float(expected.mean()), rel=1e-10)
+    assert np.allclose(metrics._ssim_rows(x, ref, slice(0, h)), expected, rtol=1e-10, atol=1e-12)
+
+
+def test_ssim_window_is_the_papers_gaussian() -> None:
+    """A single bright pixel on black: SSIM at a pixel d = (dy, dx) from it depends on the window's
+    weight w(d) only (mu = w v, sigma^2 = w v^2 - (w v)^2 with v its display value; the reference is
+    0), so the image's mean pins the window's shape: sigma 1.5 in pixels, not 1/1.5."""
+    size, v = 21, 0.5 ** (1 / 2.2)  # radiance 1 displays as 0.5^(1/2.2)
+    x = np.zeros((size, size, 1), np.float32)
+    x[10, 10, 0] = 1.0
+    g = np.exp(-np.arange(-5, 6) ** 2 / (2 * 1.5**2))
+    w2 = np.outer(g, g) / g.sum() ** 2
+    c1, c2 = 0.01**2, 0.03**2
+    weights = np.zeros((size, size))
+    weights[5:16, 5:16] = w2  # the window around each pixel within 5 of the bright one covers it
+    mu, var = weights * v, weights * v * v - (weights * v) ** 2
+    expected = (c1 * c2) / ((mu**2 + c1) * (var + c2))
+    assert metrics.ssim(x, np.zeros_like(x)) == pytest.approx(float(expected.mean()), rel=1e-9)
+
+
 def whole_image_metrics(x: np.ndarray, ref: np.ndarray) -> dict[str, float]:
     """PSNR, SSIM, relMSE and SMAPE computed on whole images at once (as before the row blocks)."""
     a, b = metrics.tonemap(x), metrics.tonemap(ref)

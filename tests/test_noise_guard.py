@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from rendering.render import render
-from denoise.noise_guard import (BLEND_BYTES_PER_PIXEL, GUARD_BYTES_PER_PIXEL, blend, blend_weight,
-                                  clean_render, guard, guard_in_place)
+from denoise.noise_guard import (BLEND_BYTES_PER_PIXEL, DEFAULT_PIVOT_SPP, GUARD_BYTES_PER_PIXEL, blend,
+                                  blend_weight, clean_render, guard, guard_in_place, strength_for)
 
 
 def _guard_case(h: int, w: int, seed: int = 3) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -168,3 +168,15 @@ def test_render_in_halves_estimates_its_own_noise(plane_scene: dict) -> None:
     assert abs(halves.rgb.mean() - a.mean()) < 0.05 * a.mean()
     assert render(plane_scene, spp=1, halves=True).variance is None
     assert render(plane_scene, spp=8, seed=3).variance is None
+
+
+@pytest.mark.parametrize("spp, pivot, expected", [(1, 16, 16.0), (4, 16, 4.0), (8, 32, 4.0), (16, 16, 1.0),
+                                                  (64, 16, 1.0), (3, 12, 4.0), (1, 0, 1.0), (1000, 0, 1.0)])
+def test_strength_grows_as_pivot_over_spp(spp: int, pivot: float, expected: float) -> None:
+    """By hand: max(1, pivot / spp); fewer samples, a stronger guard (the variance is trusted less)."""
+    assert strength_for(spp, pivot) == expected
+
+
+def test_default_strength_at_a_few_samples() -> None:
+    assert DEFAULT_PIVOT_SPP == 256
+    assert (strength_for(1), strength_for(16), strength_for(256), strength_for(4096)) == (256.0, 16.0, 1.0, 1.0)
