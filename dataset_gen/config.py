@@ -12,6 +12,7 @@ from pathlib import Path
 
 from imaging.atomic_io import write_text_atomic
 from imaging.errors import DatasetError, SceneError
+from imaging.json_read import parse_json
 from rendering.scene_io import pixel_filter_spec
 
 CONFIG_NAME = "dataset.json"
@@ -108,7 +109,7 @@ def load_config(folder: Path) -> DatasetConfig | None:
     if not path.exists():
         return None
     try:
-        data = json.loads(path.read_text())
+        data = parse_json(path.read_text())
         if not isinstance(data, dict):
             raise TypeError("not a JSON object")
         return DatasetConfig.from_json(data)

@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from imaging.atomic_io import write_text_atomic
+from imaging.json_read import parse_json
 
 MANIFEST_NAME = "manifest.jsonl"
 
@@ -26,7 +27,7 @@ def read_records(folder: Path) -> list[dict[str, Any]]:
         if not line.endswith("\n"):
             break
         try:
-            record = json.loads(line)
+            record = parse_json(line)
         except json.JSONDecodeError:
             continue
         if isinstance(record, dict) and isinstance(record.get("index"), int):

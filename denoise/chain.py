@@ -120,7 +120,8 @@ def _check_inputs(config: ModelConfig, color: np.ndarray, aux: Aux, variance: np
 def _scaled(rgb: np.ndarray, scale: float) -> np.ndarray:
     """Sanitised float32 radiance times the exposure ``scale``."""
     if scale != 1.0:
-        with np.errstate(over="ignore"):  # a huge value may overflow to Inf: sanitised below
+        # a huge value may overflow to Inf, and Inf times a scale that is 0 in float32 is NaN: sanitised below
+        with np.errstate(over="ignore", invalid="ignore"):
             rgb = np.asarray(rgb, np.float32) * np.float32(scale)
     return sanitize(rgb)
 

@@ -28,16 +28,18 @@ import OpenEXR
 from imaging.atomic_io import atomic_path
 from imaging.blocks import DEFAULT_BLOCK_BYTES, row_blocks
 from imaging.errors import ExrError
+from imaging.exr_header import EXR_MAGIC, ExrHeader, read_exr_header
+from imaging.memory_limit import fits_in_memory, megabytes
 
 XYZ_LAYERS = ("normal", "sh_normal", "nrm")
 HALF_MAX = 65504.0  # largest finite float16
-EXR_MAGIC = b"\x76\x2f\x31\x01"
 _LIBC = ctypes.CDLL(None)
 _QUIET_LOCK = threading.Lock()
 CONVERT_BYTES_PER_PIXEL = 16  # plane(): one channel's finite mask, clip and cast for float16
 _PIXEL_TYPES = {np.dtype(np.uint32): Imath.PixelType.UINT, np.dtype(np.float16): Imath.PixelType.HALF,
                 np.dtype(np.float32): Imath.PixelType.FLOAT}
 RowSource = Callable[[int, int], np.ndarray]  # rows(y0, y1) of a channel, contiguous, its pixel type
+_FLOAT = Imath.PixelType(Imath.PixelType.FLOAT)
 _STANDARD_KEYS = {"channels", "compression", "dataWindow", "displayWindow", "lineOrder",
                   "pixelAspectRatio", "screenWindowCenter", "screenWindowWidth", "type"}
 
@@ -165,40 +167,119 @@ def quiet_native_output() -> Iterator[io.StringIO]:
                 os.close(fd)
 
 
-def check_exr_file(path: Path) -> None:
-    """Raise :class:`ExrError` unless ``path`` is an existing file that starts like an EXR."""
-    if not path.exists():
-        raise ExrError(f"{path}: file not found")
-    if path.is_dir():
-        raise ExrError(f"{path}: is a directory, not an EXR file")
-    with open(path, "rb") as fh:
-        if fh.read(4) != EXR_MAGIC:
-            raise ExrError(f"{path}: not an OpenEXR file")
+def check_exr_file(path: Path) -> ExrHeader:
+    """The headers of ``path`` checked against the file (:func:`imaging.exr_header.read_exr_header`);
+    raises :class:`ExrError` unless it is an existing, plausible EXR."""
+    return read_exr_header(path)
 
 
-def read_exr(path: str | Path) -> ExrImage:
-    """Read an EXR with R, G, B channels (float16 or float32) into float32 arrays.
+def check_exr_memory(header: ExrHeader, need: int, what: str) -> None:
+    """Raise :class:`ExrError` naming both sizes when ``need`` bytes (``what``: for the message)
+    do not fit in the memory left (:mod:`imaging.memory_limit`)."""
+    fits, room = fits_in_memory(need)
+    if not fits:
+        part = header.parts[0]
+        raise ExrError(f"{header.path}: {part.width}x{part.height} pixels: {what} need {megabytes(need)}, "
+                       f"more than the {megabytes(room)} of memory available")
 
-    Raises :class:`ExrError` for a missing, truncated or non-EXR file, or one without RGB.
+
+def error_text(exc: BaseException) -> str:
+    """The first line of a native library's exception, or its type's name when it has none."""
+    lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
+    return lines[0] if lines else type(exc).__name__
+
+
+def check_full_resolution(header: ExrHeader) -> None:
+    """Raise :class:`ExrError` for a file with subsampled channels (chroma planes of YCA files)."""
+    for index, part in enumerate(header.parts):
+        if any(c.x_sampling != 1 or c.y_sampling != 1 for c in part.channels):
+            raise ExrError(f"{header.path}: subsampled channels are not supported (part {part.name or index!r})")
+
+
+def _layer_names(names: list[str]) -> dict[str, tuple[str, ...]]:
+    """R,G,B (name "") and every complete extra layer: name -> its three channels."""
+    found = {"": ("R", "G", "B")} if all(c in names for c in "RGB") else {}
+    for name in sorted({k.rsplit(".", 1)[0] for k in names if "." in k}):
+        keys = tuple(f"{name}.{s}" for s in layer_suffixes(name))
+        if all(k in names for k in keys):
+            found[name] = keys
+    return found
+
+
+def _metadata(header: Mapping[str, object]) -> dict[str, str | int | float]:
+    out: dict[str, str | int | float] = {}
+    for key, value in header.items():
+        if isinstance(value, bytes):
+            value = value.decode("utf-8", "replace")
+        if key not in _STANDARD_KEYS and isinstance(value, (str, int, float)) and not isinstance(value, bool):
+            out[key] = value
+    return out
+
+
+def _read_blocks(header: ExrHeader, layers: dict[str, tuple[str, ...]], max_bytes: float
+                 ) -> tuple[dict[str, np.ndarray], dict[str, str | int | float]]:
+    """Each layer as HxWx3 float32, a block of scanlines at a time through OpenEXR's scanline
+    reader (each block's decoded channels within ``max_bytes``)."""
+    part = header.parts[0]
+    width, height, top = part.width, part.height, part.window[1]
+    images = {name: np.empty((height, width, 3), np.float32) for name in layers}
+    keys = [(name, c, key) for name, names in layers.items() for c, key in enumerate(names)]
+    exr = OpenEXR.InputFile(str(header.path))
+    try:
+        for rows in row_blocks(height, width, 8 * len(keys), max_bytes):
+            planes = exr.channels([key for _, _, key in keys], _FLOAT, top + rows.start, top + rows.stop - 1)
+            for (name, c, _), data in zip(keys, planes):
+                images[name][rows, :, c] = np.frombuffer(data, np.float32).reshape(-1, width)
+        return images, _metadata(exr.header())
+    finally:
+        exr.close()
+
+
+def _read_whole(header: ExrHeader, max_bytes: float) -> tuple[dict[str, np.ndarray], dict[str, str | int | float]]:
+    """Each layer of the first part as HxWx3 float32, the file decoded whole by ``OpenEXR.File``
+    (tiled or multi-part files): refused when its decoded pixels exceed ``max_bytes``."""
+    if header.pixel_bytes > max_bytes:
+        raise ExrError(f"{header.path}: a {'multi-part' if header.multipart else 'tiled'} EXR is read whole: its "
+                       f"pixels need {megabytes(header.pixel_bytes)}, more than the memory budget of "
+                       f"{megabytes(max_bytes)}")
+    with OpenEXR.File(str(header.path), separate_channels=True) as exr:
+        file_header = dict(exr.header())
+        channels = {k: v.pixels for k, v in exr.channels().items()}
+    images = {}
+    for name, keys in _layer_names(list(channels)).items():
+        images[name] = np.empty(np.shape(channels[keys[0]]) + (3,), np.float32)
+        for c, key in enumerate(keys):
+            images[name][:, :, c] = channels[key]
+    return images, _metadata(file_header)
+
+
+def read_exr(path: str | Path, max_bytes: float = DEFAULT_BLOCK_BYTES) -> ExrImage:
+    """Read an EXR with R, G, B channels (float16 or float32) into float32 arrays, with every
+    complete extra layer. A single-part scanline file is read a block of rows at a time (the
+    decoded blocks within ``max_bytes``); others whole, refused when their pixels exceed
+    ``max_bytes``.
+
+    Raises :class:`ExrError` for a missing, truncated or non-EXR file, one without RGB, or one
+    whose images do not fit in the memory left.
     """
     path = Path(path)
-    check_exr_file(path)
-    try:
-        with quiet_native_output(), OpenEXR.File(str(path), separate_channels=True) as exr:
-            header = dict(exr.header())
-            channels = {k: np.array(v.pixels) for k, v in exr.channels().items()}
-    except (RuntimeError, ValueError, OSError) as exc:
-        raise ExrError(f"{path}: truncated or corrupt EXR ({str(exc).splitlines()[0]})") from None
-    missing = [c for c in "RGB" if c not in channels]
+    header = check_exr_file(path)
+    names = [c.name for c in header.parts[0].channels]
+    missing = [c for c in "RGB" if c not in names]
     if missing:
         raise ExrError(f"{path}: has no {'/'.join(missing)} channel(s) (found: "
-                       f"{', '.join(sorted(channels)) or 'none'})")
-    rgb = np.stack([channels[c] for c in "RGB"], axis=-1).astype(np.float32)
-    layers: dict[str, np.ndarray] = {}
-    for name in sorted({k.rsplit(".", 1)[0] for k in channels if "." in k}):
-        keys = [f"{name}.{s}" for s in layer_suffixes(name)]
-        if all(k in channels for k in keys):
-            layers[name] = np.stack([channels[k] for k in keys], axis=-1).astype(np.float32)
-    metadata = {k: v for k, v in header.items()
-                if k not in _STANDARD_KEYS and isinstance(v, (str, int, float))}
-    return ExrImage(rgb=rgb, layers=layers, metadata=metadata)
+                       f"{', '.join(sorted(names)) or 'none'})")
+    layers = _layer_names(names)
+    part = header.parts[0]
+    check_full_resolution(header)
+    check_exr_memory(header, len(layers) * part.width * part.height * 12, f"{len(layers)} float32 image(s)")
+    try:
+        with quiet_native_output():
+            if header.multipart or part.tiles is not None:
+                images, metadata = _read_whole(header, max_bytes)
+            else:
+                images, metadata = _read_blocks(header, layers, max_bytes)
+    except (RuntimeError, ValueError, OSError, TypeError) as exc:
+        raise ExrError(f"{path}: truncated or corrupt EXR ({error_text(exc)})") from None
+    rgb = images.pop("")
+    return ExrImage(rgb=rgb, layers=images, metadata=metadata)

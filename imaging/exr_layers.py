@@ -27,7 +27,8 @@ import OpenEXR
 from imaging.atomic_io import atomic_path
 from imaging.blocks import DEFAULT_BLOCK_BYTES
 from imaging.errors import ExrError
-from imaging.exr import RowSource, check_exr_file, plane, quiet_native_output, write_scanlines
+from imaging.exr import (RowSource, check_exr_file, check_exr_memory, check_full_resolution, error_text, plane,
+                         quiet_native_output, write_scanlines)
 
 COLOR_WORDS = ("color", "colour", "rgb", "rgba", "beauty", "combined", "image", "noisy image")
 ALBEDO_WORDS = ("albedo", "denoising albedo")
@@ -111,9 +112,14 @@ class ExrFile:
             self.layers = find_layers(self.parts)
 
     def image(self, layer: Layer) -> np.ndarray:
-        """HxWxC float32 pixels of ``layer`` (C = 3 or 1)."""
+        """HxWxC float32 pixels of ``layer`` (C = 3 or 1), converted into the image a channel at a
+        time (no whole temporary beside it)."""
         planes = self.parts[layer.part].channels
-        return np.stack([np.asarray(planes[c], np.float32) for c in layer.channels], axis=-1)
+        first = planes[layer.channels[0]]
+        out = np.empty((*np.shape(first), len(layer.channels)), np.float32)
+        for c, name in enumerate(layer.channels):
+            out[:, :, c] = planes[name]
+        return out
 
     def is_half(self, layer: Layer) -> bool:
         return self.parts[layer.part].channels[layer.channels[0]].dtype == np.float16
@@ -157,19 +163,24 @@ def find_layers(parts: list[ExrPart]) -> dict[str, Layer]:
 
 
 def read_exr_file(path: str | Path) -> ExrFile:
-    """Read every part and channel of an EXR (scanline or tiled; deep parts are refused).
+    """Read every part and channel of an EXR (scanline or tiled; deep parts are refused), its
+    headers checked first (:func:`imaging.exr_header.read_exr_header`): its channels and a float32
+    colour image must fit in the memory left.
 
     Raises :class:`ExrError` naming the file for a missing, truncated or non-EXR file.
     """
     path = Path(path)
-    check_exr_file(path)
+    header = check_exr_file(path)
+    check_full_resolution(header)
+    largest = max(p.width * p.height for p in header.parts)
+    check_exr_memory(header, header.pixel_bytes + 12 * largest, "its channels and a float32 colour image")
     try:
         with quiet_native_output() as printed, OpenEXR.File(str(path), separate_channels=True) as exr:
             parts = [ExrPart(dict(p.header), {k: np.array(v.pixels) for k, v in p.channels.items()})
                      for p in exr.parts]
-    except (RuntimeError, ValueError, OSError) as exc:
-        raise ExrError(f"{path}: truncated or corrupt EXR ({str(exc).splitlines()[0]})") from None
-    if not parts or "Exception raised reading" in printed.getvalue():
+    except (RuntimeError, ValueError, OSError, TypeError) as exc:
+        raise ExrError(f"{path}: truncated or corrupt EXR ({error_text(exc)})") from None
+    if len(parts) != len(header.parts) or "Exception raised reading" in printed.getvalue():
         # The binding skips a part whose pixels it cannot read, with a warning, instead of raising.
         raise ExrError(f"{path}: truncated or corrupt EXR (a part's pixels cannot be read)")
     for part in parts:

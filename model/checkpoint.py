@@ -20,7 +20,7 @@ from __future__ import annotations
 import functools
 import hashlib
 import json
-import struct
+import math
 import subprocess
 from dataclasses import dataclass
 from pathlib import Path
@@ -31,8 +31,10 @@ import torch
 
 from imaging.atomic_io import atomic_path
 from imaging.errors import CheckpointError, ConfigError
+from imaging.json_read import parse_json
 from model.architectures import build_model
 from model.config import ModelConfig
+from model.shapes import ExpectedState, expected_state, min_parameters, min_state_entries
 
 FORMAT = "mc-densenet-denoiser-checkpoint"
 FORMAT_VERSION = 1
@@ -120,38 +122,160 @@ def _optimizer_header(optimizer: torch.optim.Optimizer) -> dict[str, Any]:
             "param_groups": [{k: (list(v) if isinstance(v, tuple) else v) for k, v in g.items()} for g in groups]}
 
 
-def _read_metadata(data: bytes) -> dict[str, str]:
-    (length,) = struct.unpack("<Q", data[:8])
-    return json.loads(data[8:8 + length]).get("__metadata__") or {}
+_SAFETENSORS_DTYPES = {"F64": torch.float64, "F32": torch.float32, "F16": torch.float16, "BF16": torch.bfloat16,
+                       "I64": torch.int64, "I32": torch.int32, "I16": torch.int16, "I8": torch.int8,
+                       "U8": torch.uint8, "BOOL": torch.bool}
+_OPTIMIZER_KEYS = ("exp_avg", "exp_avg_sq", "max_exp_avg_sq")  # Adam's per-parameter moments
 
 
-def read_checkpoint(path: str | Path) -> Checkpoint:
-    """Read and check a checkpoint file; raises :class:`CheckpointError` with the reason."""
-    path = Path(path)
+def _json(text: str, path: Path, what: str) -> Any:
     try:
-        data = path.read_bytes()
+        return parse_json(text)
+    except ValueError as exc:
+        raise CheckpointError(f"{path}: corrupt checkpoint {what} ({str(exc).splitlines()[0][:200]})") from None
+
+
+def _open_tensors(path: Path) -> tuple[dict[str, str], dict[str, tuple[tuple[int, ...], str]]]:
+    """(metadata, name -> (shape, safetensors dtype)) of a safetensors file, read from its header
+    alone (safetensors checks that every tensor lies within the file)."""
+    try:
+        with safetensors.safe_open(str(path), framework="pt") as f:
+            metadata = f.metadata() or {}
+            shapes = {k: (tuple(f.get_slice(k).get_shape()), f.get_slice(k).get_dtype()) for k in f.keys()}
     except FileNotFoundError:
         raise CheckpointError(f"{path}: checkpoint not found") from None
     except OSError as exc:
         raise CheckpointError(f"{path}: cannot read ({exc.strerror or exc})") from None
-    try:
-        tensors = safetensors.torch.load(data)
-        metadata = _read_metadata(data)
     except Exception as exc:  # safetensors raises its own error type for any malformed file
+        raise CheckpointError(f"{path}: truncated or not a safetensors checkpoint "
+                              f"({str(exc).splitlines()[0][:200] if str(exc) else type(exc).__name__})") from None
+    return metadata, shapes
+
+
+def _load_tensors(path: Path, names: list[str]) -> dict[str, torch.Tensor]:
+    try:
+        with safetensors.safe_open(str(path), framework="pt") as f:
+            return {k: f.get_tensor(k) for k in names}
+    except OSError as exc:
+        raise CheckpointError(f"{path}: cannot read ({exc.strerror or exc})") from None
+    except Exception as exc:
         raise CheckpointError(f"{path}: truncated or not a safetensors checkpoint ({exc})") from None
+
+
+def _header(path: Path, metadata: dict[str, str]) -> dict[str, Any]:
     if _META_KEY not in metadata:
         raise CheckpointError(f"{path}: not a denoiser checkpoint (no '{_META_KEY}' header)")
-    try:
-        header = json.loads(metadata[_META_KEY])
-    except json.JSONDecodeError as exc:
-        raise CheckpointError(f"{path}: corrupt checkpoint header ({exc})") from None
+    header = _json(metadata[_META_KEY], path, "header")
     if not isinstance(header, dict) or header.get("format") != FORMAT:
         raise CheckpointError(f"{path}: not a denoiser checkpoint (format {header.get('format')!r})"
                               if isinstance(header, dict) else f"{path}: corrupt checkpoint header")
     if header.get("format_version") != FORMAT_VERSION:
         raise CheckpointError(f"{path}: checkpoint format version {header.get('format_version')!r} is not "
                               f"supported (expected {FORMAT_VERSION})")
-    return Checkpoint(path, header, tensors)
+    _check_header_fields(path, header)
+    return header
+
+
+def _is_int(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _check_header_fields(path: Path, header: dict[str, Any]) -> None:
+    """The header's fields have the types :func:`save_checkpoint` writes: ``step`` a count,
+    ``extra`` an object, the configs and the optimiser an object or null (its parameter groups
+    objects), the spp range a training config records counts."""
+    problems = []
+    if not (_is_int(header.get("step")) and header["step"] >= 0):
+        problems.append(f"step {header.get('step')!r}")
+    for key in ("train_config", "data_config", "optimizer"):
+        if header.get(key) is not None and not isinstance(header[key], dict):
+            problems.append(f"{key} of type {type(header[key]).__name__}")
+    if not isinstance(header.get("extra", {}), dict):
+        problems.append(f"extra of type {type(header['extra']).__name__}")
+    optimizer = header.get("optimizer") if isinstance(header.get("optimizer"), dict) else {}
+    if optimizer and not (isinstance(optimizer.get("param_groups"), list)
+                          and all(isinstance(g, dict) for g in optimizer["param_groups"])):
+        problems.append("optimizer param_groups not a list of objects")
+    train_config = header.get("train_config") if isinstance(header.get("train_config"), dict) else {}
+    for key in ("min_spp", "max_spp"):
+        value = train_config.get(key)
+        if value is not None and not (_is_int(value) and value >= 0):
+            problems.append(f"train_config {key} {value!r}")
+    if problems:
+        raise CheckpointError(f"{path}: corrupt checkpoint header ({'; '.join(problems)})")
+
+
+def model_config_of(path: Path, header: dict[str, Any]) -> ModelConfig:
+    """The header's model config; raises :class:`CheckpointError` when it is missing or invalid."""
+    try:
+        return ModelConfig.from_dict(header.get("model_config"))
+    except (ConfigError, TypeError) as exc:
+        raise CheckpointError(f"{path}: bad model config in checkpoint ({exc})") from None
+
+
+def check_tensors(path: Path, header: dict[str, Any], shapes: dict[str, tuple[tuple[int, ...], str]],
+                  file_bytes: int) -> None:
+    """Raise :class:`CheckpointError` unless the stored tensors (name -> (shape, safetensors
+    dtype)) are those the header's model config implies (:mod:`model.shapes`, nothing built or
+    allocated): the weights by name, shape and dtype; Adam's moments with their parameter's shape;
+    the RNG state; nothing else."""
+    config = model_config_of(path, header)
+    stored = {k[len("model/"):]: v for k, v in shapes.items() if k.startswith("model/")}
+    if min_state_entries(config) > len(stored):
+        raise CheckpointError(f"{path}: weights do not match the model config (it implies at least "
+                              f"{min_state_entries(config):,} weight tensors, the file holds {len(stored):,})")
+    if 4 * min_parameters(config) > file_bytes:
+        raise CheckpointError(f"{path}: weights do not match the model config (it implies at least "
+                              f"{min_parameters(config):,} parameters, {4 * min_parameters(config):,} bytes; "
+                              f"the file has {file_bytes:,} bytes)")
+    expected = expected_state(config)
+    missing, unexpected = sorted(set(expected.shapes) - set(stored)), sorted(set(stored) - set(expected.shapes))
+    if missing or unexpected:
+        raise CheckpointError(f"{path}: weights do not match the model config "
+                              f"(missing: {', '.join(missing[:3]) or '-'}; "
+                              f"unexpected: {', '.join(unexpected[:3]) or '-'})")
+    for key, (shape, dtype) in expected.shapes.items():
+        found_shape, found_dtype = stored[key]
+        if found_shape != shape or _SAFETENSORS_DTYPES.get(found_dtype) != dtype:
+            needed = next((k for k, v in _SAFETENSORS_DTYPES.items() if v == dtype), str(dtype))
+            raise CheckpointError(f"{path}: weight {key} has shape {found_shape} {found_dtype}, the model "
+                                  f"config needs {shape} {needed}")
+    _check_other_tensors(path, shapes, expected)
+
+
+def _check_other_tensors(path: Path, shapes: dict[str, tuple[tuple[int, ...], str]], expected: ExpectedState
+                         ) -> None:
+    """The RNG state (a 1-D uint8 tensor) and Adam's per-parameter state, nothing else."""
+    for name, (shape, dtype) in shapes.items():
+        if name.startswith("model/"):
+            continue
+        if name == "rng/torch":
+            if len(shape) != 1 or dtype != "U8":
+                raise CheckpointError(f"{path}: tensor rng/torch has shape {shape} {dtype}, expected 1-D U8")
+            continue
+        index, _, key = name[len("optim/"):].partition("/")
+        if not name.startswith("optim/") or not index.isdigit() or int(index) >= len(expected.parameters):
+            raise CheckpointError(f"{path}: unexpected tensor {name!r}")
+        parameter = expected.shapes[expected.parameters[int(index)]][0]
+        if key == "step" and len(shape) <= 1 and math.prod(shape) == 1:
+            continue
+        if key not in _OPTIMIZER_KEYS or shape != parameter or dtype not in ("F32", "BF16", "F16", "F64"):
+            raise CheckpointError(f"{path}: optimiser tensor {name} has shape {shape} {dtype}, its parameter "
+                                  f"{parameter}")
+
+
+def read_checkpoint(path: str | Path) -> Checkpoint:
+    """Read and check a checkpoint file; raises :class:`CheckpointError` with the reason.
+
+    The header and the tensors' names, shapes and dtypes are read and checked against each other
+    (:func:`check_tensors`) before any tensor is loaded or any network built."""
+    path = Path(path)
+    if path.is_dir():
+        raise CheckpointError(f"{path}: cannot read (Is a directory)")
+    metadata, shapes = _open_tensors(path)
+    header = _header(path, metadata)
+    check_tensors(path, header, shapes, path.stat().st_size)
+    return Checkpoint(path, header, _load_tensors(path, list(shapes)))
 
 
 def strip_optimizer(src: str | Path, dst: str | Path) -> None:
@@ -203,11 +327,7 @@ def pixel_filter(header: dict[str, Any]) -> dict[str, Any]:
 
 def model_from_checkpoint(ckpt: Checkpoint) -> torch.nn.Module:
     """Rebuild the network from the header's model config and load its weights (strict)."""
-    try:
-        config = ModelConfig.from_dict(ckpt.header.get("model_config"))
-    except (ConfigError, TypeError) as exc:
-        raise CheckpointError(f"{ckpt.path}: bad model config in checkpoint ({exc})") from None
-    model = build_model(config)
+    model = build_model(model_config_of(ckpt.path, ckpt.header))
     state = ckpt.prefixed("model/")
     expected = model.state_dict()
     missing, unexpected = sorted(set(expected) - set(state)), sorted(set(state) - set(expected))
@@ -244,15 +364,31 @@ def restore_optimizer(ckpt: Checkpoint, optimizer: torch.optim.Optimizer) -> Non
     if len(info["param_groups"]) != len(optimizer.param_groups):
         raise CheckpointError(f"{ckpt.path}: optimiser has {len(info['param_groups'])} parameter groups, "
                               f"expected {len(optimizer.param_groups)}")
+    bad = [g for g in info["param_groups"] if not _plain_group(g)]
+    if bad:
+        raise CheckpointError(f"{ckpt.path}: corrupt optimiser parameter group in checkpoint ({str(bad[0])[:200]})")
     # Hyper-parameters and moments come from the file; the implementation flags stay as configured.
     groups = [{**{k: (tuple(v) if k == "betas" else v) for k, v in saved.items()},
                **{k: current[k] for k in _IMPLEMENTATION_FLAGS if k in current}}
               for saved, current in zip(info["param_groups"], optimizer.state_dict()["param_groups"])]
     try:
         optimizer.load_state_dict({"state": dict(sorted(state.items())), "param_groups": groups})
-    except (ValueError, KeyError, RuntimeError) as exc:
+    except (ValueError, KeyError, RuntimeError, TypeError, AttributeError) as exc:
         raise CheckpointError(f"{ckpt.path}: optimiser state does not match the model ({exc})") from None
     _match_param_layout(optimizer)
+
+
+def _plain_group(group: dict[str, Any]) -> bool:
+    """A parameter group as :func:`save_checkpoint` writes it: ``params`` a list of indices,
+    ``betas`` two numbers, every other value a number, a flag or null."""
+    def number(v: Any) -> bool:
+        return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+    return (isinstance(group.get("params"), list) and all(_is_int(i) for i in group["params"])
+            and (isinstance(group.get("betas"), list) and len(group["betas"]) == 2
+                 and all(number(b) for b in group["betas"]) if "betas" in group else True)
+            and all(number(v) or isinstance(v, bool) or v is None for k, v in group.items()
+                    if k not in ("params", "betas")))
 
 
 def _match_param_layout(optimizer: torch.optim.Optimizer) -> None:

@@ -181,7 +181,10 @@ DEFAULT_TRAIN_MODEL = dataclasses.replace(PRESETS["unet-m"], kernel=5)
 
 def preset(name: str, **overrides: Any) -> ModelConfig:
     """The named preset, with optional field overrides (e.g. ``arch="plaincnn"``); raises
-    :class:`ConfigError` listing the valid names for any other name."""
-    if name not in PRESETS:
+    :class:`ConfigError` listing the valid names for any other name, or for an unknown field."""
+    if not isinstance(name, str) or name not in PRESETS:
         raise ConfigError(f"unknown model preset {name!r} (valid: {', '.join(PRESETS)})")
+    unknown = sorted(set(overrides) - {f.name for f in dataclasses.fields(ModelConfig)})
+    if unknown:
+        raise ConfigError(f"unknown model config key(s): {', '.join(map(str, unknown))}")
     return dataclasses.replace(PRESETS[name], **overrides)

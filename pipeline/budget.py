@@ -18,7 +18,6 @@ after and are not counted.
 """
 from __future__ import annotations
 
-import json
 import math
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -29,6 +28,7 @@ from typing import Any
 import numpy as np
 
 from imaging.errors import DenoiserError
+from imaging.json_read import parse_json
 from rendering.render import render_loaded
 from denoise.tiling import Core, plan_tiles
 from denoise.denoiser import Denoiser
@@ -149,7 +149,7 @@ def _rule_without_curves(fitting: list[dict[str, Any]], left: float) -> tuple[di
 def load_curves(path: str | Path, metric: str = "relmse") -> Curves:
     """Error against spp of each denoiser in a ``tradeoff.json``; raises :class:`BudgetError`."""
     try:
-        data = json.loads(Path(path).read_text())
+        data = parse_json(Path(path).read_text())
         curves: Curves = {}
         for p in data["points"]:
             spp, err = curves.setdefault(p["denoiser"], ([], []))

@@ -27,6 +27,8 @@ FLIPS_HELP = ("average the network over 1, 2 or 4 mirrored copies of the image: 
               "network's time for about 0.1 or 0.2 dB (docs/experiments.md)")
 ENERGY_HELP = ("leave the output's local means as the network made them (default: matched to the render's "
                "where they differ by more than its noise; docs/design.md)")
+OVERWRITE_HELP = ("allow an output to replace an input (the same file, a hard link or a symbolic link to it; "
+                  "default: refused)")
 SKIP_HELP = ("leave the 64-px cells whose noise (transfer-space standard deviation from the halves) is "
              "below NOISE out of the network; they keep the render, as the noise guard would "
              "(benchmarks/skip.py measures time and change; default: the network everywhere)")
@@ -95,6 +97,7 @@ def add_render_arguments(p: argparse.ArgumentParser, reference_required: bool, g
     p.add_argument("--flips", type=int, choices=tuple(FLIPS), default=1, help=FLIPS_HELP)
     p.add_argument("--no-energy", action="store_true", help=ENERGY_HELP)
     p.add_argument("--device", choices=DEVICES, default="cpu", help=DEVICE_HELP)
+    p.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
 
 
 def render_settings(args: argparse.Namespace) -> RenderSettings:
@@ -104,7 +107,7 @@ def render_settings(args: argparse.Namespace) -> RenderSettings:
                           noise_guard=not args.no_noise_guard, skip_below=args.skip_below,
                           precision=args.precision, flips=args.flips, energy=not args.no_energy,
                           device=args.device, reference=args.reference,
-                          reference_spp=args.reference_spp)
+                          reference_spp=args.reference_spp, overwrite=args.overwrite)
 
 
 def render_parser() -> OneLineParser:
@@ -156,8 +159,9 @@ def denoise_parser() -> OneLineParser:
     p = OneLineParser(prog="denoise", description="Denoise an image rendered elsewhere (EXR with any "
                       "layers or parts, PFM, Radiance HDR); the output keeps the input's layout.")
     p.add_argument("files", nargs="+", metavar="IN OUT",
-                   help="input and output image (with --halves: the output only); an output "
-                   "ending in .pfm or .hdr is written in that format, anything else as EXR")
+                   help="input and output image (with --halves: the output only); the output's "
+                   "extension picks its format: .exr (the input's layers and parts), .pfm, .hdr, or .png "
+                   "(tonemapped 8-bit); any other is refused, and so is an output that is an input")
     p.add_argument("--halves", nargs=2, metavar=("A", "B"),
                    help="two independent halves of one render: denoise their mean, with the noise "
                    "guard fed by their difference")
@@ -182,6 +186,7 @@ def denoise_parser() -> OneLineParser:
     p.add_argument("--device", choices=DEVICES, default="cpu", help=DEVICE_HELP)
     p.add_argument("--json", action="store_true", help="print what was done as JSON instead of the table")
     p.add_argument("--quiet", action="store_true", help="print nothing on success")
+    p.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     return p
 
 
@@ -202,7 +207,7 @@ def denoise_main(argv: list[str] | None = None) -> int:
                             variance_layer=args.variance_layer, rgb_only=args.rgb_only, spp=args.spp,
                             noise_guard=not args.no_noise_guard, max_memory_mb=args.max_memory_mb,
                             skip_below=args.skip_below, precision=args.precision, flips=args.flips,
-                            energy=not args.no_energy, device=args.device)
+                            energy=not args.no_energy, device=args.device, overwrite=args.overwrite)
     from pipeline.denoise_file import denoise_summary
 
     result, code = parser.attempt(lambda: denoise_file(cfg))

@@ -6,8 +6,9 @@ layer is :func:`imaging.exr_layers.pick_color_layer`'s choice (or ``layer``); al
 layers beside it go to models that use them. The variance of the image's Monte Carlo estimate,
 from the halves (:func:`rendering.render.half_variance`) or a variance layer, goes to the
 denoiser, which applies the noise guard with it. The output replaces the colour layer's channels
-and keeps every other layer, part and attribute (``rgb_only``: a plain RGB EXR); a ``.pfm`` or
-``.hdr`` output path writes that format instead.
+and keeps every other layer, part and attribute (``rgb_only``: a plain RGB EXR); a ``.pfm``,
+``.hdr`` or ``.png`` (tonemapped) output path writes that format instead, any other extension is
+refused, and so is an output that is one of the inputs (:mod:`imaging.output_paths`).
 """
 from __future__ import annotations
 
@@ -18,14 +19,16 @@ from typing import Any
 import numpy as np
 
 from imaging.atomic_io import json_safe
-from imaging.bitmap_io import image_format, output_format, read_bitmap, write_bitmap
+from imaging.bitmap_io import check_image_header, image_format, read_bitmap, write_bitmap
 from imaging.errors import DenoiserError, ExrError
 from imaging.exr import write_exr
-from imaging.blocks import row_blocks
+from imaging.blocks import DEFAULT_BLOCK_BYTES, row_blocks
 from imaging.exr_layers import (ALBEDO_WORDS, NORMAL_WORDS, VARIANCE_WORDS, ExrFile, Layer,
                                  describe_layers, find_aux_layer, pick_color_layer, read_exr_file,
                                  replace_layer, write_exr_file)
 from imaging.metrics import all_metrics
+from imaging.output_paths import check_not_inputs, output_format
+from imaging.png import save_png
 from rendering.render import half_variance
 from denoise.denoiser import Denoiser
 from denoise.energy import settings_if
@@ -59,6 +62,7 @@ class DenoiseFileConfig:
     device: str = "cpu"
     flips: int = 1
     energy: bool = True
+    overwrite: bool = False
 
 
 @dataclass
@@ -98,15 +102,16 @@ def _variance(exr: ExrFile, color: Layer, name: str | None) -> tuple[np.ndarray 
     return (np.repeat(var, 3, axis=2) if var.shape[2] == 1 else var), layer.name
 
 
-def read_input(path: str | Path, layer: str | None = None, variance_layer: str | None = None
-               ) -> InputImage:
-    """Read one input image (EXR, PFM or HDR) with its colour layer and what is beside it."""
+def read_input(path: str | Path, layer: str | None = None, variance_layer: str | None = None,
+               max_bytes: float = DEFAULT_BLOCK_BYTES) -> InputImage:
+    """Read one input image (EXR, PFM or HDR) with its colour layer and what is beside it; the
+    readers' temporaries within ``max_bytes`` where they go a block of rows at a time."""
     fmt = image_format(path)
     if fmt != "exr":
         if layer is not None or variance_layer is not None:
             raise DenoiserError(f"{path}: a {fmt.upper()} file has no layers (--layer and "
                                 "--variance-layer are for EXR files)")
-        return InputImage(str(path), read_bitmap(path))
+        return InputImage(str(path), read_bitmap(path, max_bytes))
     exr = read_exr_file(path)
     color = pick_color_layer(exr, layer)
     aux = {key: find_aux_layer(exr, words, color, ("rgb", "xyz"))
@@ -134,12 +139,18 @@ def combine_halves(a: InputImage, b: InputImage, max_bytes: float = 64 * 2**20) 
     return InputImage(a.path, mean, a.exr, a.layer, a.albedo, a.normals, variance, "halves", spp)
 
 
-def _write(cfg: DenoiseFileConfig, image: InputImage, result: np.ndarray, model: str) -> str:
-    """Write the output; return the layout written."""
+def _write(cfg: DenoiseFileConfig, image: InputImage, result: np.ndarray, model: str, max_bytes: float) -> str:
+    """Write the output in the format its extension names; return the layout written."""
     attributes = {"denoised_by": model, "source": Path(image.path).name}
-    if output_format(cfg.output) != "exr":
+    fmt = output_format(cfg.output)
+    if fmt == "png":
+        if not Path(cfg.output).parent.is_dir():
+            raise DenoiserError(f"{cfg.output}: output folder does not exist")
+        save_png(cfg.output, result, min(max_bytes, DEFAULT_BLOCK_BYTES))
+        return "png (tonemapped 8-bit)"
+    if fmt != "exr":
         write_bitmap(cfg.output, result)
-        return output_format(cfg.output)
+        return fmt
     half = image.exr is not None and image.layer is not None and image.exr.is_half(image.layer)
     if cfg.rgb_only or image.exr is None or image.layer is None:
         write_exr(cfg.output, result, metadata=attributes, half=half)
@@ -155,12 +166,17 @@ def denoise_file(cfg: DenoiseFileConfig) -> dict[str, Any]:
         raise DenoiserError(f"expected one input or two halves, got {len(cfg.inputs)} files")
     if len(cfg.inputs) == 2 and cfg.variance_layer is not None:
         raise DenoiserError("two halves give the variance: --variance-layer is for a single input")
+    output_format(cfg.output)
+    check_not_inputs([cfg.output], [*cfg.inputs, cfg.reference], cfg.overwrite)
+    for path in [*cfg.inputs, *([cfg.reference] if cfg.reference else [])]:
+        check_image_header(path)  # before the models load: a file that lies fails at once
     denoiser = Denoiser(cfg.model, max_memory_mb=cfg.max_memory_mb, skip_below=cfg.skip_below,
                         precision=cfg.precision, flips=cfg.flips,
                         energy=settings_if(cfg.energy), device=cfg.device)
-    images = [read_input(p, cfg.layer, cfg.variance_layer) for p in cfg.inputs]
+    blocks = min(denoiser.max_bytes, DEFAULT_BLOCK_BYTES)  # the readers' temporaries
+    images = [read_input(p, cfg.layer, cfg.variance_layer, blocks) for p in cfg.inputs]
     image = images[0] if len(images) == 1 else combine_halves(*images, max_bytes=denoiser.max_bytes)
-    ref = read_input(cfg.reference).rgb if cfg.reference else None
+    ref = read_input(cfg.reference, max_bytes=blocks).rgb if cfg.reference else None
     if ref is not None and ref.shape != image.rgb.shape:
         raise DenoiserError(f"{cfg.reference}: reference is {ref.shape[1]}x{ref.shape[0]}, "
                             f"input is {image.rgb.shape[1]}x{image.rgb.shape[0]}")
@@ -169,7 +185,7 @@ def denoise_file(cfg: DenoiseFileConfig) -> dict[str, Any]:
     strength = strength_for(spp) if spp else DEFAULT_STRENGTH
     result = denoiser.denoise_array(image.rgb, image.albedo, image.normals, variance=variance,
                                     strength=strength, spp=spp or None)
-    layout = _write(cfg, image, result.image, denoiser.name)
+    layout = _write(cfg, image, result.image, denoiser.name, denoiser.max_bytes)
     out: dict[str, Any] = {
         "input": cfg.inputs[0] if len(cfg.inputs) == 1 else list(cfg.inputs), "output": cfg.output,
         "layer": image.layer.name if image.layer else None, "layout": layout,

@@ -26,6 +26,7 @@ import numpy as np
 
 from imaging.errors import DenoiserError
 from imaging.exr import read_exr
+from imaging.output_paths import check_not_inputs
 from imaging.metrics import all_metrics, flip, psnr, relmse
 from rendering.render import DEFAULT_MAX_MEMORY_MB, RenderResult, load_scene, pass_seeds, prepare, render_loaded
 from denoise.denoiser import DenoiseResult, Denoiser
@@ -48,7 +49,8 @@ class RenderSettings:
     denoisers' float format (:mod:`denoise.precision`); ``flips``: test-time flips of the networks
     (:mod:`denoise.flips`); ``energy``: match the output's local means to the render's
     (:mod:`denoise.energy`); ``device``: where the networks run (:func:`model.device.choose_device`);
-    the reference is an EXR file or a render at ``reference_spp`` (another seed)."""
+    the reference is an EXR file or a render at ``reference_spp`` (another seed). ``overwrite``:
+    outputs may replace the scene or reference file (:mod:`imaging.output_paths`)."""
 
     scene: str
     resolution: tuple[int, int] | None = None
@@ -63,6 +65,12 @@ class RenderSettings:
     device: str = "cpu"
     reference: str | None = None
     reference_spp: int | None = None
+    overwrite: bool = False
+
+    def check_outputs(self, out: str | Path, names: Iterable[str]) -> None:
+        """Raise :class:`imaging.output_paths.OutputPathError` when a file the command writes into
+        ``out`` (``names``) is its scene or reference file, or a link to one (unless ``overwrite``)."""
+        check_not_inputs([Path(out) / name for name in names], [self.scene, self.reference], self.overwrite)
 
     def check(self, reference_required: bool = False) -> None:
         """Raise :class:`DenoiserError` for both references given (or none, when one is required)."""
@@ -100,7 +108,7 @@ def render_input(scene: Any, spp: int, settings: RenderSettings, aovs: Sequence[
 def read_reference(settings: RenderSettings) -> np.ndarray | None:
     """The reference EXR's HxWx3 radiance (read before rendering, so a bad file fails early), or
     None when there is none or it is to be rendered (:func:`render_reference`)."""
-    return read_exr(settings.reference).rgb if settings.reference else None
+    return read_exr(settings.reference, max_bytes=settings.max_memory_mb * 2**20).rgb if settings.reference else None
 
 
 def render_reference(settings: RenderSettings, scene: Any, aovs: Sequence[str] = ()) -> RenderResult:

@@ -63,6 +63,11 @@ def output_bytes(cfg: RenderSettings) -> float:
     return min(DEFAULT_BLOCK_BYTES, cfg.max_memory_mb * 2**20 / 8)
 
 
+# every file run() writes into (or removes from) its output folder
+OUTPUT_NAMES = ("config.json", "metrics.json", "report.html", "comparison.png", ".write-test",
+                *(f"{image}.{ext}" for image in ("noisy", "denoised", "oidn", "reference") for ext in ("exr", "png")))
+
+
 def _check_out(out: Path) -> None:
     try:
         out.mkdir(parents=True, exist_ok=True)
@@ -120,6 +125,7 @@ def _start(cfg: RunConfig, log: Callable[[str], None]) -> _Run:
     """Check the settings, load the models, read the reference file and prepare the output folder
     (everything that can fail before the render); write config.json."""
     cfg.render.check()
+    cfg.render.check_outputs(cfg.out, OUTPUT_NAMES)
     started = time.perf_counter()
     candidates = budget_candidates(cfg.model, cfg.render) if cfg.time_budget is not None else {}
     denoiser = next(iter(candidates.values())) if candidates else make_denoiser(cfg.model, cfg.render)

@@ -202,6 +202,9 @@ def analyse(points: list[Point], info: dict[str, Any], metric: str) -> dict[str,
     return result
 
 
+OUTPUT_NAMES = ("config.json", "tradeoff.json", "tradeoff.csv", "tradeoff.png", "report.html", ".write-test")
+
+
 def _prepare_out(out: Path) -> None:
     """Create ``out`` and check it is writable; drop an earlier run's ``tradeoff.json`` (the
     completion marker) so that it never sits beside new, unfinished outputs."""
@@ -222,6 +225,7 @@ def run_tradeoff(cfg: TradeoffConfig, progress: ProgressFactory | None = None) -
 
     out = Path(cfg.out)
     cfg.check()
+    cfg.render.check_outputs(out, OUTPUT_NAMES)
     _prepare_out(out)
     write_json_atomic(out / "config.json", asdict(cfg))
     result = measure(cfg, progress)

@@ -264,3 +264,76 @@ def test_the_card_meta_and_the_pixel_filter_it_records(tmp_path: Path) -> None:
     assert pixel_filter({"data_config": {"filter": "box"}}) == {"type": "box"}
     assert pixel_filter({"data_config": {"filter": {"type": "tent"}}}) == {"type": "tent"}
     assert pixel_filter({}) == {"type": "box"} and checkpoint_meta({}) == {}
+
+
+@pytest.fixture
+def saved(tmp_path: Path) -> Path:
+    model, opt = _trained(1)
+    save_checkpoint(tmp_path / "m.ckpt", model, step=1, optimizer=opt)
+    return tmp_path / "m.ckpt"
+
+
+@pytest.mark.parametrize("changes, message", [
+    ({"growth": 4096}, r"weights do not match the model config \(it implies at least 1,811,939,328 parameters, "
+                       r"7,247,757,312 bytes; the file has [0-9,]+ bytes\)"),
+    ({"layers": 4096}, r"weights do not match the model config \(it implies at least 49,152 weight tensors, the "
+                       r"file holds 48\)"),
+    ({"init_features": 9}, r"weight head.0.weight has shape \(8, 9, 7, 7\) F32, the model config needs "
+                           r"\(9, 9, 7, 7\) F32"),
+    ({"arch": "dense_unet", "levels": 6, "layers": 4000}, r"weights do not match the model config \(it implies at "
+                                                          r"least 624,000 weight tensors"),
+])
+def test_headers_that_lie_about_the_network_are_refused_before_it_is_built(
+        saved: Path, monkeypatch: pytest.MonkeyPatch, changes: dict, message: str) -> None:
+    """The header's config is checked against the stored tensors' names, shapes and dtypes (counted
+    or built on the meta device), never by building the network it describes."""
+    import model.checkpoint
+
+    _rewrite(saved, header_changes={"model_config": {**CONFIG.to_dict(), **changes}})
+    monkeypatch.setattr(model.checkpoint, "build_model", lambda config: pytest.fail("network built"))
+    with pytest.raises(CheckpointError, match=f"m.ckpt: {message}"):
+        load_model(saved)
+
+
+@pytest.mark.parametrize("replace, message", [
+    ({"model/head.0.weight": torch.zeros(8, 9, 7, 7, dtype=torch.float64)},
+     r"weight head.0.weight has shape \(8, 9, 7, 7\) F64, the model config needs \(8, 9, 7, 7\) F32"),
+    ({"model/extra.weight": torch.zeros(3)}, r"weights do not match the model config \(missing: -; unexpected: "
+                                             r"extra.weight\)"),
+    ({"junk": torch.zeros(2**10)}, "unexpected tensor 'junk'"),
+    ({"optim/999/exp_avg": torch.zeros(3)}, "unexpected tensor 'optim/999/exp_avg'"),
+    ({"optim/0/exp_avg": torch.zeros(2**16)}, r"optimiser tensor optim/0/exp_avg has shape \(65536,\) F32, its "
+                                              r"parameter \(8, 9, 7, 7\)"),
+    ({"optim/0/secret": torch.zeros(8, 9, 7, 7)}, "optimiser tensor optim/0/secret has shape"),
+    ({"rng/torch": torch.zeros(2, 2)}, r"tensor rng/torch has shape \(2, 2\) F32, expected 1-D U8"),
+])
+def test_tensors_beside_the_weights_are_checked(saved: Path, replace: dict, message: str) -> None:
+    _rewrite(saved, replace=replace)
+    with pytest.raises(CheckpointError, match=f"m.ckpt: {message}"):
+        read_checkpoint(saved)
+
+
+@pytest.mark.parametrize("text, message", [
+    ("[" * 100000 + "]" * 100000, "corrupt checkpoint header"),
+    ('{"format": "mc-densenet-denoiser-checkpoint", "format_version": 1, "step": 0}', "bad model config in checkpoint"),
+    ('{"format": "mc-densenet-denoiser-checkpoint", "format_version": 1}', r"corrupt checkpoint header \(step None\)"),
+    ("not json", "corrupt checkpoint header"),
+])
+def test_header_json_that_breaks_parsers(saved: Path, text: str, message: str) -> None:
+    tensors = safetensors.torch.load_file(str(saved))
+    safetensors.torch.save_file(tensors, str(saved), metadata={"denoiser_checkpoint": text})
+    with pytest.raises(CheckpointError, match=f"m.ckpt: {message}"):
+        read_checkpoint(saved)
+
+
+@pytest.mark.parametrize("changes, message", [
+    ({"step": -1}, "step -1"), ({"step": "7"}, "step '7'"), ({"train_config": 1.5}, "train_config of type float"),
+    ({"extra": []}, "extra of type list"), ({"optimizer": {"type": "Adam", "param_groups": [1]}},
+                                             "optimizer param_groups not a list of objects"),
+    ({"train_config": {"max_spp": [8]}}, r"train_config max_spp \[8\]"),
+])
+def test_header_fields_of_the_wrong_type(saved: Path, changes: dict, message: str) -> None:
+    """What inference and training read from the header has the type the writer gives it."""
+    _rewrite(saved, header_changes=changes)
+    with pytest.raises(CheckpointError, match=f"m.ckpt: corrupt checkpoint header \\({message}"):
+        read_checkpoint(saved)

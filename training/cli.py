@@ -24,6 +24,8 @@ from pathlib import Path
 from typing import Any
 
 from imaging.errors import ConfigError, DenoiserError
+from imaging.json_read import parse_json
+from imaging.output_paths import check_not_inputs
 from console.progress import tqdm_bars
 from console.usage import OneLineParser
 from model.config import ARCHS, PRESETS, UNET_ARCHS, ModelConfig, preset
@@ -31,7 +33,7 @@ from model.device import DEVICES
 from training.distributed import RankInfo, ddp_config, launch, rank_from_env, train_distributed
 from training.recipe import load_recipe, recipe_names
 from training.recipe_run import RecipeRun, plan, run_recipe
-from training.train import resume_config, train
+from training.train import RUN_FILES, resume_config, train
 from training.train_config import LOSS_NORMS, LOSS_SPACES, RESUMABLE_OVERRIDES, TrainConfig
 
 _FLAGS = {  # argparse dest -> TrainConfig field
@@ -184,7 +186,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _read_json(path: str) -> dict[str, Any]:
     try:
-        data = json.loads(Path(path).read_text(encoding="utf-8"))
+        data = parse_json(Path(path).read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise ConfigError(f"{path}: cannot read config ({exc})") from None
     if not isinstance(data, dict):
@@ -339,6 +341,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         rank = rank_from_env()
         hint = _resume_hint(parser, args, rank)
+        check_not_inputs([Path(args.out) / name for name in RUN_FILES], [args.config, args.init_from],
+                         hint="choose another --out")
         config, resume = config_from_args(args)
         if args.nproc is not None and args.nproc < 1:
             raise ConfigError(f"--nproc must be >= 1, got {args.nproc}")

@@ -24,6 +24,7 @@ import torch
 
 from imaging.errors import DatasetError, ExrError
 from imaging.exr import read_exr
+from imaging.json_read import parse_json
 from imaging.naming import image_name
 from model.noise_input import noise_channels
 from training.patches import TrainingPair
@@ -63,7 +64,7 @@ def read_dataset_config(root: Path) -> dict[str, Any]:
     """Parsed ``dataset.json``; raises :class:`DatasetError` if missing, malformed or unsupported."""
     path = root / "dataset.json"
     try:
-        config = json.loads(path.read_text(encoding="utf-8"))
+        config = parse_json(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
         raise DatasetError(f"{path}: not found (is {root} a dataset folder?)") from None
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
@@ -80,7 +81,7 @@ def read_dataset_config(root: Path) -> dict[str, Any]:
 
 def _record(line: str, path: Path, number: int) -> SceneRecord:
     try:
-        obj = json.loads(line)
+        obj = parse_json(line)
         record = SceneRecord(int(obj["index"]), str(obj["split"]),
                              tuple(int(s) for s in obj["spp"]), tuple(str(a) for a in obj.get("aovs", [])),
                              tuple(int(s) for s in obj.get("variance_spp", [])))

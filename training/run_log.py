@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from imaging.atomic_io import atomic_path, json_safe, write_text_atomic
+from imaging.json_read import parse_json
 
 
 class RunLog:
@@ -36,7 +37,7 @@ class RunLog:
         records = []
         for line in self.path.read_text(encoding="utf-8").splitlines():
             try:
-                records.append(json.loads(line))
+                records.append(parse_json(line))
             except json.JSONDecodeError:
                 continue
         return records

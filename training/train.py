@@ -23,7 +23,7 @@ from typing import Any
 import torch
 
 from imaging.atomic_io import TMP_PREFIX, write_text_atomic
-from imaging.errors import ConfigError, DatasetError, DenoiserError, TrainingError
+from imaging.errors import CheckpointError, ConfigError, DatasetError, DenoiserError, TrainingError
 from imaging.hashing import file_sha256
 from console.progress import ProgressBar, ProgressFactory
 from model.architectures import build_model
@@ -34,6 +34,7 @@ from training.batches import BatchSource, auto_workers
 from training.dataset import (SceneRecord, ValImage, load_training_pairs, load_val_images, read_dataset_config,
                            read_manifest)
 from model.grow import grow_model
+from model.shapes import check_fits_in_memory
 from training.patches import TrainingPair
 from training.provenance import card_meta, data_pixel_filter, hardware, inherited
 from training.run_log import RunLog, plot_curves
@@ -79,6 +80,9 @@ class _LossMeter:
 def build_optimizer(model: torch.nn.Module, config: TrainConfig) -> torch.optim.Adam:
     """Adam at the configured base LR (the schedule sets the LR of each step)."""
     return torch.optim.Adam(model.parameters(), lr=config.lr, fused=True if config.fused_adam else None)
+
+
+RUN_FILES = ("last.ckpt", "best.ckpt", "log.jsonl", "train_config.json", "curves.png")  # what a run writes
 
 
 def resume_config(out: str | Path, overrides: dict[str, Any]) -> TrainConfig:
@@ -127,14 +131,21 @@ def _check_scene_counts(data_config: dict[str, Any], ckpt: Checkpoint | None, co
     saved = ckpt.header.get("data_config") if ckpt is not None else None
     if not saved:
         return
+    olds = [saved, *(saved.get("extra_data") or [])]
+    if not isinstance(saved.get("extra_data") or [], list) or not all(isinstance(o, dict) for o in olds):
+        raise CheckpointError(f"{ckpt.path}: corrupt data_config in checkpoint")
     folders = (config.data, *config.extra_data)
-    for folder, old, new in zip(folders, [saved, *saved.get("extra_data", [])],
-                                [data_config, *data_config.get("extra_data", [])]):
+    for folder, old, new in zip(folders, olds, [data_config, *data_config.get("extra_data", [])]):
         if "scenes" in old and old["scenes"] != new["scenes"]:
-            raise DatasetError(f"{folder}: the run was trained on {old['scenes']['train']} train / "
-                               f"{old['scenes']['val']} val scenes, the dataset now gives {new['scenes']['train']} / "
-                               f"{new['scenes']['val']} (scenes added or removed since; start a new run, e.g. "
-                               "with --init-from, to train on them)")
+            (was_train, was_val), (now_train, now_val) = _split_counts(old["scenes"]), _split_counts(new["scenes"])
+            raise DatasetError(f"{folder}: the run was trained on {was_train} train / {was_val} val scenes, the "
+                               f"dataset now gives {now_train} / {now_val} (scenes added or removed since; start a "
+                               "new run, e.g. with --init-from, to train on them)")
+
+
+def _split_counts(scenes: Any) -> tuple[Any, Any]:
+    """(train, val) of a data config's ``scenes`` record (as recorded, whatever it holds)."""
+    return (scenes.get("train"), scenes.get("val")) if isinstance(scenes, dict) else (scenes, None)
 
 
 def _remove_temporaries(folder: Path) -> None:
@@ -164,12 +175,17 @@ class _Run:
         self.loss_space = get_transfer(config.model.transfer).display if config.loss_space == "display" else None
         extra = ckpt.header.get("extra", {}) if ckpt else {}
         self.step = int(ckpt.header["step"]) if ckpt else 0
-        self.best_psnr: float | None = extra.get("best_psnr")
-        self.guard = NonFiniteGuard(config.max_bad_steps, int(extra.get("skipped_total", 0)))
-        self.meter = _LossMeter(**extra.get("meter", {}))
-        self.train_s = float(extra.get("train_s", 0.0))  # optimisation seconds so far, all sittings
-        self.cpu_s = float(extra.get("cpu_s", 0.0))  # process CPU seconds of optimisation, all sittings
-        self.gpu_s = float(extra.get("gpu_s", 0.0))  # optimisation seconds on a GPU, all sittings
+        try:
+            self.best_psnr: float | None = None if extra.get("best_psnr") is None else float(extra["best_psnr"])
+            self.guard = NonFiniteGuard(config.max_bad_steps, int(extra.get("skipped_total", 0)))
+            meter = extra.get("meter", {})
+            self.meter = _LossMeter(float(meter.get("total", 0.0)), int(meter.get("count", 0)),
+                                    int(meter.get("skipped", 0)))
+            self.train_s = float(extra.get("train_s", 0.0))  # optimisation seconds so far, all sittings
+            self.cpu_s = float(extra.get("cpu_s", 0.0))  # process CPU seconds of optimisation, all sittings
+            self.gpu_s = float(extra.get("gpu_s", 0.0))  # optimisation seconds on a GPU, all sittings
+        except (TypeError, ValueError, AttributeError, OverflowError) as exc:
+            raise CheckpointError(f"{ckpt.path}: corrupt training state in checkpoint ({exc})") from None
         self.pixel_filter = data_pixel_filter(self.data_config)
         self.machine = hardware(self.device)
         # identity of the --init-from weights (the file at that path may be replaced later)
@@ -243,6 +259,7 @@ class _Run:
     def _build(self, ckpt: Checkpoint | None) -> tuple[torch.nn.Module, torch.optim.Adam]:
         self.source_header: dict[str, Any] | None = None  # the warm start's header (its card's hours)
         if ckpt is None:
+            check_fits_in_memory(self.config.model)
             torch.manual_seed(self.config.seed)
             model = build_model(self.config.model)
             if self.config.init_from:

@@ -204,6 +204,9 @@ class TrainConfig:
         if unknown:
             raise ConfigError(f"unknown train config key(s): {', '.join(unknown)}")
         values = dict(data)
+        for key, kind in (("model", ModelConfig), ("patch", PatchConfig)):
+            if key in values and not isinstance(values[key], (dict, kind)):
+                raise ConfigError(f"train config {key} must be a JSON object, got {type(values[key]).__name__}")
         if isinstance(values.get("model"), dict):
             values["model"] = ModelConfig.from_dict(values["model"])
         if isinstance(values.get("patch"), dict):

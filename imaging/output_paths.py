@@ -1,0 +1,62 @@
+"""Where outputs may go: never onto an input, and in the format their name says.
+
+An output path that is an input (the same path), a hard link to one (the same file under another
+name) or a symbolic link to one would replace the file a person wanted to keep: :func:`check_not_inputs`
+refuses it unless the command was told to overwrite. (Outputs are written to a temporary name and
+renamed over the path, :mod:`imaging.atomic_io`: with ``--overwrite`` an output on a link replaces
+the link, not the file it points to.) :func:`output_format` maps an image output's extension to
+the format written, and refuses any other extension instead of writing one format under the name
+of another.
+"""
+from __future__ import annotations
+
+import os
+from collections.abc import Iterable
+from pathlib import Path
+
+from imaging.errors import DenoiserError
+
+IMAGE_OUTPUTS = {".exr": "exr", ".pfm": "pfm", ".hdr": "hdr", ".rgbe": "hdr", ".pic": "hdr", ".png": "png"}
+OVERWRITE_HINT = "give --overwrite to replace it"
+
+
+class OutputPathError(DenoiserError):
+    """An output path that would replace an input, or names a format that is not written."""
+
+
+def output_format(path: str | Path) -> str:
+    """``exr``, ``pfm``, ``hdr`` or ``png`` from an image output's extension (case-insensitive);
+    raises :class:`OutputPathError` for any other."""
+    suffix = Path(path).suffix.lower()
+    if suffix not in IMAGE_OUTPUTS:
+        raise OutputPathError(f"{path}: cannot write {repr(suffix) if suffix else 'a file without an extension'}: "
+                              "an output image's name must end in .exr, .pfm, .hdr or .png")
+    return IMAGE_OUTPUTS[suffix]
+
+
+def _same_file(output: Path, source: Path) -> str | None:
+    """How ``output`` is ``source`` (``"is"``, ``"is a symbolic link to"``, ``"is a hard link to"``), or None."""
+    try:
+        if not os.path.samefile(output, source):
+            return None
+    except OSError:  # one of them does not exist (or cannot be looked at): compare the paths
+        return "is" if output.resolve() == source.resolve() else None
+    if output.absolute() == source.absolute():
+        return "is"
+    if output.is_symlink():
+        return "is a symbolic link to"
+    return "is" if output.resolve() == source.resolve() else "is a hard link to"
+
+
+def check_not_inputs(outputs: Iterable[str | Path], inputs: Iterable[str | Path | None], overwrite: bool = False,
+                     hint: str = OVERWRITE_HINT) -> None:
+    """Raise :class:`OutputPathError` (one line naming both) when an output is an input, a hard
+    link or a symbolic link to one (module notes); ``overwrite`` allows it. None inputs are skipped."""
+    if overwrite:
+        return
+    sources = [Path(p) for p in inputs if p is not None]
+    for output in map(Path, outputs):
+        for source in sources:
+            how = _same_file(output, source)
+            if how is not None:
+                raise OutputPathError(f"{output}: {how} the input {source}: refusing to overwrite it ({hint})")
