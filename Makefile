@@ -7,7 +7,7 @@ PY := $(VENV)/bin/python
 TORCH_VERSION := 2.13.0
 STAMP := $(VENV)/.installed
 
-.PHONY: test demo evaluate bootstrap llvm chromium clean
+.PHONY: test demo evaluate fuzz mutation bootstrap llvm chromium clean
 
 test: bootstrap
 	$(PY) -m pytest -q
@@ -20,6 +20,17 @@ demo: bootstrap
 
 evaluate: bootstrap
 	$(PY) -m benchmarks.evaluate
+
+# The long fuzz campaign (one core, niced): FUZZ_INPUTS more mutated files per reader, added to the
+# lifetime record benchmarks/results/fuzz.json; failing inputs land in fuzz/crashes/ (docs/robustness.md).
+FUZZ_INPUTS ?= 10000
+fuzz: bootstrap
+	OMP_NUM_THREADS=1 nice -n 10 $(PY) -m fuzz.campaign --inputs $(FUZZ_INPUTS)
+
+# Mutation testing of the core modules against their tests (about an hour on one core): the scores
+# and survivors go to benchmarks/results/mutation.json (docs/robustness.md).
+mutation: bootstrap
+	OMP_NUM_THREADS=1 nice -n 10 $(PY) -m mutation.runner
 
 bootstrap: llvm chromium $(STAMP)
 
