@@ -53,10 +53,10 @@ def _setup(workdir: Path, name: str) -> tuple[Any, Any]:
 
 def worker(name: str, start: int, stop: int, workdir: Path, time_limit: float, memory_limit_mb: float) -> None:
     """Run inputs ``start..stop`` of target ``name``, one line per event on stdout."""
-    from fuzz.harness import _status_kb, run_input
+    from fuzz.harness import run_input, status_kb
 
     ctx, target = _setup(workdir, name)
-    size = (_status_kb("VmSize") or 0) * 1024
+    size = (status_kb("VmSize") or 0) * 1024
     resource.setrlimit(resource.RLIMIT_AS, (size + int(4 * memory_limit_mb * 2**20), resource.RLIM_INFINITY))
     out = sys.__stdout__
     for index in range(start, stop):
@@ -197,7 +197,7 @@ def main(argv: list[str] | None = None) -> int:
     log = lambda text: print(text, flush=True)  # noqa: E731
     run: dict[str, Any] = {"date": time.strftime("%Y-%m-%d %H:%M"), "command": "python -m fuzz.campaign "
                            + " ".join(argv if argv is not None else sys.argv[1:]), "inputs": {},
-                           "load_before": os.getloadavg()[0]}
+                           "load_avg_before": os.getloadavg()[0]}
     try:
         for name in names:
             start = record["targets"].get(name, {}).get("inputs", 0)
@@ -208,7 +208,7 @@ def main(argv: list[str] | None = None) -> int:
             args.record.write_text(json.dumps(record, indent=1) + "\n")
     finally:
         shutil.rmtree(workdir, ignore_errors=True)
-    run["load_after"] = os.getloadavg()[0]
+    run["load_avg_after"] = os.getloadavg()[0]
     record["runs"].append(run)
     args.record.write_text(json.dumps(record, indent=1) + "\n")
     return 0

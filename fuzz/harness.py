@@ -25,6 +25,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from fuzz.targets import Context, Seed, Target
+from imaging.memory_limit import kb_field
 
 FAILURES = ("exception", "stderr", "exit", "slow", "memory", "changed")
 ANSI = re.compile(r"\x1b\[[0-9;]*m")
@@ -53,14 +54,10 @@ class Outcome:
                 f"{first.strip()[-2000:]}")
 
 
-def _status_kb(key: str) -> int | None:
-    try:
-        for line in Path("/proc/self/status").read_text().splitlines():
-            if line.startswith(key + ":"):
-                return int(line.split()[1])
-    except (OSError, ValueError, IndexError):
-        return None
-    return None
+def status_kb(key: str) -> int | None:
+    """A field of /proc/self/status (``VmRSS``, ``VmHWM``, ``VmSize``) in kB; None if unreadable."""
+    found = kb_field(Path("/proc/self/status"), key)
+    return None if found is None else found // 1024
 
 
 def reset_peak() -> bool:
@@ -122,7 +119,7 @@ def run_input(target: Target, mutated: Seed, folder: Path, ctx: Context, time_li
     target.lay_out(folder, mutated)
     given = _digests(folder)
     code, detail = None, ""
-    before_kb = _status_kb("VmRSS") or 0
+    before_kb = status_kb("VmRSS") or 0
     measured = reset_peak()
     with captured_output() as output:
         start = time.perf_counter()
@@ -137,7 +134,7 @@ def run_input(target: Target, mutated: Seed, folder: Path, ctx: Context, time_li
         seconds = time.perf_counter() - start
     stderr = output.read_text(errors="replace")
     output.unlink()
-    peak_kb = _status_kb("VmHWM") if measured else None
+    peak_kb = status_kb("VmHWM") if measured else None
     peak_mb = None if peak_kb is None else max(0.0, (peak_kb - before_kb) / 1024)
     status = judge(target, code, stderr, detail)
     if status not in FAILURES:

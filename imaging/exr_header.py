@@ -6,8 +6,9 @@ make it allocate what the header says. :func:`read_exr_header` parses the header
 layout of the OpenEXR file format: magic, version and flags, attributes until an empty name, one
 header per part, then one table of chunk offsets per part), bounds what they claim
 (:data:`MAX_SIDE`, :data:`MAX_CHANNELS`, :data:`MAX_PARTS`), checks that every part's chunk table
-lies within the file and points into it, and for uncompressed parts that the file holds the pixels
-the header promises. What the pixels need in memory (:attr:`ExrHeader.pixel_bytes`) is then known
+lies within the file and points into it, and that the file can hold the pixels the header
+promises (uncompressed, or within the largest ratio of RLE and ZIP: a small file cannot claim a
+huge image of zeros). What the pixels need in memory (:attr:`ExrHeader.pixel_bytes`) is then known
 before anything is allocated. Deep parts are refused (their sizes are not in the header).
 """
 from __future__ import annotations
@@ -30,7 +31,10 @@ PIXEL_TYPE_BYTES = {0: 4, 1: 2, 2: 4}  # UINT, HALF, FLOAT
 # scanlines per chunk of the compressions OpenEXR 3 defines (NONE, RLE, ZIPS, ZIP, PIZ, PXR24, B44,
 # B44A, DWAA, DWAB); others are left to OpenEXR
 LINES_PER_CHUNK = {0: 1, 1: 1, 2: 1, 3: 16, 4: 32, 5: 16, 6: 32, 7: 32, 8: 32, 9: 256}
-NO_COMPRESSION = 0
+# the most bytes one stored byte can decode to: none 1, RLE 64 (two bytes give a run of 128), ZIPS and
+# ZIP 1032 (deflate's limit: a 258-byte match in 2 bits); the other compressions are left unbounded
+MAX_RATIO = {0: 1, 1: 64, 2: 1032, 3: 1032}
+COMPRESSION_NAMES = {0: "uncompressed", 1: "RLE", 2: "ZIPS", 3: "ZIP"}
 _TILED, _NON_IMAGE, _MULTIPART = 0x200, 0x800, 0x1000
 _DEEP = ("deepscanline", "deeptile")
 
@@ -242,9 +246,12 @@ def _check_tables(parts: list[ExrPartHeader], r: _Reader, size: int) -> int:
         if count < 1 or (expected is not None and count != expected):
             raise r.fail(f"part {index} has {count} chunks, its header implies {expected}")
         tables.append(np.frombuffer(r.take(8 * count, f"the chunk table of part {index}"), dtype="<u8"))
-        if part.compression == NO_COMPRESSION and part.pixel_bytes > size:
-            raise r.fail(f"part {index}'s uncompressed pixels need {part.pixel_bytes:,} bytes, "
-                         f"the file has {size:,}")
+        ratio = MAX_RATIO.get(part.compression)
+        if ratio is not None and part.pixel_bytes > ratio * size:
+            how = "uncompressed" if ratio == 1 else \
+                f"with {COMPRESSION_NAMES[part.compression]} compression (at most {ratio}:1)"
+            raise r.fail(f"part {index}'s pixels need {part.pixel_bytes:,} bytes, more than the file's "
+                         f"{size:,} bytes hold {how}")
     for index, (part, table) in enumerate(zip(parts, tables)):
         # a tiled part's full-resolution tiles come first; writers may leave its lower levels out (0)
         full = table if part.tiles is None else table[:tile_count(part.width, part.height, (*part.tiles[:2], 0, 0))]

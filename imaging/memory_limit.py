@@ -17,8 +17,9 @@ _STATUS = Path("/proc/self/status")
 _CGROUP = Path("/sys/fs/cgroup")
 
 
-def _kb_field(path: Path, key: str) -> int | None:
-    """A ``key: N kB`` line of a /proc file, in bytes; None when it cannot be read."""
+def kb_field(path: Path, key: str) -> int | None:
+    """A ``key: N kB`` line of a /proc file (``/proc/meminfo``, ``/proc/self/status``), in bytes;
+    None when it cannot be read."""
     try:
         for line in path.read_text().splitlines():
             if line.startswith(key + ":"):
@@ -43,7 +44,7 @@ def _rlimit_room(kind: int, used_key: str) -> int | None:
     soft, _ = resource.getrlimit(kind)
     if soft == resource.RLIM_INFINITY:
         return None
-    used = _kb_field(_STATUS, used_key)
+    used = kb_field(_STATUS, used_key)
     return max(0, soft - (used or 0))
 
 
@@ -51,7 +52,7 @@ def available_bytes() -> int | None:
     """The bytes this process can still allocate: the least of the kernel's estimate of available
     memory (``MemAvailable``), the cgroup's room and the room left by ``RLIMIT_AS`` /
     ``RLIMIT_DATA``; None where none of them can be read."""
-    rooms = [_kb_field(_MEMINFO, "MemAvailable"), _cgroup_room(),
+    rooms = [kb_field(_MEMINFO, "MemAvailable"), _cgroup_room(),
              _rlimit_room(resource.RLIMIT_AS, "VmSize"), _rlimit_room(resource.RLIMIT_DATA, "VmData")]
     known = [r for r in rooms if r is not None]
     return min(known) if known else None

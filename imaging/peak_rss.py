@@ -13,19 +13,15 @@ import threading
 from pathlib import Path
 from types import TracebackType
 
+from imaging.memory_limit import kb_field
+
 _STATUS = Path("/proc/self/status")
 MB = 2**20
 
 
 def _status_bytes(key: str) -> int | None:
     """A ``/proc/self/status`` field given in kB (``VmRSS``, ``VmHWM``), in bytes; None if unreadable."""
-    try:
-        for line in _STATUS.read_text().splitlines():
-            if line.startswith(key + ":"):
-                return int(line.split()[1]) * 1024
-    except (OSError, ValueError, IndexError):
-        return None
-    return None
+    return kb_field(_STATUS, key)
 
 
 def current_rss() -> int | None:

@@ -19,7 +19,6 @@ f-strings and the arguments of ``raise`` are left alone: their changes only rewo
 from __future__ import annotations
 
 import ast
-import copy
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
@@ -114,7 +113,7 @@ def _changes(node: ast.AST) -> Iterator[tuple[str, Callable[[ast.AST], None]]]:
         yield f"{node.value!r} -> {new_value!r}", lambda n, v=new_value: setattr(n, "value", v)
     elif isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id in ("min", "max"):
         new_name = "max" if node.func.id == "min" else "min"
-        yield f"{node.func.id} -> {new_name}", lambda n, v=new_name: setattr(n.func, "id", v)
+        yield f"{node.func.id} -> {new_name}", lambda n, v=new_name: setattr(n, "func", ast.Name(v, ast.Load()))
     elif isinstance(node, (ast.Tuple, ast.List)) and len(node.elts) > 1 and all(
             isinstance(e, (ast.Name, ast.Attribute)) for e in node.elts):
         for i in range(len(node.elts) - 1):
@@ -124,37 +123,25 @@ def _changes(node: ast.AST) -> Iterator[tuple[str, Callable[[ast.AST], None]]]:
 
 
 def mutants(source: str, functions: tuple[str, ...] | None = None) -> Iterator[Mutant]:
-    """Every mutant of ``source`` (module notes), in a fixed order."""
+    """Every mutant of ``source`` (module notes), in a fixed order. Each change is made on the
+    parsed tree, unparsed and undone."""
     tree = ast.parse(source)
     skip, inside = _skipped(tree), _in_functions(tree, functions)
-    sites = [node for node in ast.walk(tree) if id(node) not in skip and (inside is None or id(node) in inside)]
-    for position, node in enumerate(sites):
-        changes = list(_changes(node))
-        if isinstance(node, ast.UnaryOp) and isinstance(node.op, (ast.Not, ast.USub)):
-            changes.append((f"{type(node.op).__name__} removed", "unwrap"))
-        for description, change in changes:
-            changed = copy.deepcopy(tree)
-            target = _nth_site(changed, tree, sites, position)
-            if change == "unwrap":
-                _unwrap(changed, target)
-            else:
-                change(target)
-            yield Mutant(getattr(node, "lineno", 0), description, ast.unparse(ast.fix_missing_locations(changed)))
-
-
-def _nth_site(changed: ast.Module, original: ast.Module, sites: list[ast.AST], position: int) -> ast.AST:
-    """The node of ``changed`` (a deep copy of ``original``) at the place of ``sites[position]``."""
-    pairs = dict(zip(map(id, ast.walk(original)), ast.walk(changed)))
-    return pairs[id(sites[position])]
-
-
-def _unwrap(tree: ast.Module, node: ast.UnaryOp) -> None:
-    """Replace ``node`` by its operand wherever it is referenced."""
-    for parent in ast.walk(tree):
-        for field, value in ast.iter_fields(parent):
-            if value is node:
-                setattr(parent, field, node.operand)
-            elif isinstance(value, list):
-                for i, item in enumerate(value):
-                    if item is node:
-                        value[i] = node.operand
+    parents = {id(child): (parent, field) for parent in ast.walk(tree) for field, value in ast.iter_fields(parent)
+               for child in (value if isinstance(value, list) else [value]) if isinstance(child, ast.AST)}
+    for node in ast.walk(tree):
+        if id(node) in skip or (inside is not None and id(node) not in inside):
+            continue
+        for description, change in _changes(node):
+            saved = {k: (list(v) if isinstance(v, list) else v) for k, v in vars(node).items()}
+            change(node)
+            yield Mutant(getattr(node, "lineno", 0), description, ast.unparse(tree))
+            for k, v in saved.items():
+                setattr(node, k, v)
+        if isinstance(node, ast.UnaryOp) and isinstance(node.op, (ast.Not, ast.USub)) and id(node) in parents:
+            parent, field = parents[id(node)]
+            value = getattr(parent, field)
+            setattr(parent, field, [node.operand if v is node else v for v in value] if isinstance(value, list)
+                    else node.operand)
+            yield Mutant(node.lineno, f"{type(node.op).__name__} removed", ast.unparse(tree))
+            setattr(parent, field, value)

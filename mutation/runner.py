@@ -144,7 +144,7 @@ def main(argv: list[str] | None = None) -> int:
     log = lambda text: print(text, flush=True)  # noqa: E731
     previous = json.loads(args.result.read_text()) if args.result.exists() else {"modules": {}}
     record = {"command": "python -m mutation.runner " + " ".join(argv if argv is not None else sys.argv[1:]),
-              "date": time.strftime("%Y-%m-%d %H:%M"), "load_before": os.getloadavg()[0],
+              "date": time.strftime("%Y-%m-%d %H:%M"), "load_avg_before": os.getloadavg()[0],
               "commit": subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
                                        text=True).stdout.strip(),
               "modules": dict(previous.get("modules", {}))}
@@ -155,7 +155,7 @@ def main(argv: list[str] | None = None) -> int:
             done = record["modules"][module.path]
             log(f"{module.path}: {done['killed']}/{done['mutants']} killed, score {done['score']}")
             args.result.write_text(json.dumps(record, indent=1) + "\n")
-    record["load_after"] = os.getloadavg()[0]
+    record["load_avg_after"] = os.getloadavg()[0]
     args.result.write_text(json.dumps(record, indent=1) + "\n")
     return 0
 

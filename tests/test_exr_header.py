@@ -116,6 +116,18 @@ def test_offsets_outside_the_file_and_uncompressed_pixels_missing(tmp_path: Path
         read_exr_header(tmp_path / "raw_cut.exr")
 
 
+def test_a_small_file_cannot_claim_a_huge_image_of_zeros(tmp_path: Path) -> None:
+    """One ZIP chunk (16 rows) whose data window is widened to 100000 pixels: the chunk table still
+    fits, but 100000 x 16 x 3 float32 values cannot come out of a few hundred bytes of deflate."""
+    write_exr(tmp_path / "z.exr", np.zeros((16, 8, 3), np.float32))
+    data = _patch_attribute((tmp_path / "z.exr").read_bytes(), "dataWindow", struct.pack("<4i", 0, 0, 99999, 15))
+    (tmp_path / "bomb.exr").write_bytes(data)
+    with pytest.raises(ExrError, match=f"bomb.exr: truncated or corrupt EXR \\(part 0's pixels need 19,200,000 bytes, "
+                                       f"more than the file's {len(data):,} bytes hold with ZIP compression "
+                                       "\\(at most 1032:1\\)"):
+        read_exr_header(tmp_path / "bomb.exr")
+
+
 def test_channel_and_part_bounds(tmp_path: Path, rng: np.random.Generator, monkeypatch: pytest.MonkeyPatch) -> None:
     with OpenEXR.File({}, _planes(rng, 2, 2, "ABCDEFG")) as f:
         f.write(str(tmp_path / "seven.exr"))

@@ -13,7 +13,7 @@ from imaging.memory_limit import available_bytes, fits_in_memory, megabytes
 
 def test_available_is_at_most_the_kernels_estimate() -> None:
     room = available_bytes()
-    meminfo = memory_limit._kb_field(memory_limit._MEMINFO, "MemAvailable")
+    meminfo = memory_limit.kb_field(memory_limit._MEMINFO, "MemAvailable")
     if meminfo is None:
         pytest.skip("no /proc/meminfo")
     assert room is not None and 0 <= room <= meminfo
@@ -25,7 +25,7 @@ def test_an_address_space_limit_bounds_it() -> None:
     code = textwrap.dedent("""
         import resource
         from imaging import memory_limit
-        size = memory_limit._kb_field(memory_limit._STATUS, "VmSize")
+        size = memory_limit.kb_field(memory_limit._STATUS, "VmSize")
         resource.setrlimit(resource.RLIMIT_AS, (size + 512 * 2**20, resource.RLIM_INFINITY))
         room = memory_limit.available_bytes()
         print(room, memory_limit.fits_in_memory(600 * 2**20)[0], memory_limit.fits_in_memory(100 * 2**20)[0])

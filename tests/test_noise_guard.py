@@ -180,3 +180,36 @@ def test_strength_grows_as_pivot_over_spp(spp: int, pivot: float, expected: floa
 def test_default_strength_at_a_few_samples() -> None:
     assert DEFAULT_PIVOT_SPP == 256
     assert (strength_for(1), strength_for(16), strength_for(256), strength_for(4096)) == (256.0, 16.0, 1.0, 1.0)
+
+
+@pytest.mark.parametrize("strength, weight", [(1.0, 0.48), (2.0, 0.96), (4.0, 1.0)])
+def test_blend_weight_and_blend_by_hand(strength: float, weight: float) -> None:
+    """A uniform image (every window mean is the pixel's value): V = 0.1 + 0.2 + 0.3 = 0.6,
+    D = 0.5^2 + 0 + 1^2 = 1.25, weight min(1, strength 0.6 / 1.25); the blend is
+    w denoised + (1 - w) noisy."""
+    noisy = np.broadcast_to(np.float32([1.0, 2.0, 3.0]), (5, 4, 3)).copy()
+    denoised = np.broadcast_to(np.float32([1.5, 2.0, 2.0]), (5, 4, 3)).copy()
+    variance = np.broadcast_to(np.float32([0.1, 0.2, 0.3]), (5, 4, 3)).copy()
+    w = blend_weight(noisy, denoised, variance, strength=strength)
+    np.testing.assert_allclose(w, weight, rtol=1e-6)
+    image, mean = guard(noisy, denoised, variance, strength=strength)
+    np.testing.assert_allclose(image, weight * denoised + (1 - weight) * noisy, rtol=1e-6)
+    assert mean == pytest.approx(weight, rel=1e-6)
+
+
+def test_clean_render_by_hand() -> None:
+    noisy = np.array([[[np.nan, np.inf, -np.inf], [-2.0, 0.0, 0.5]]], np.float64)
+    out = clean_render(noisy)
+    assert out.dtype == np.float32 and np.array_equal(out, [[[0, 0, 0], [0, 0, 0.5]]])
+
+
+def test_the_default_window_is_five_pixels_wide() -> None:
+    """One row; the render's variance 0.5 at pixel 4 only, a change of 1 everywhere (D = 1): the
+    weight is V = 0.5 / 5 in the 5-px windows (cut at the row's ends) that hold pixel 4, 0 elsewhere."""
+    noisy = np.zeros((1, 9, 3), np.float32)
+    denoised = noisy.copy()
+    denoised[..., 0] = 1.0
+    variance = np.zeros_like(noisy)
+    variance[0, 4, 0] = 0.5
+    np.testing.assert_allclose(blend_weight(noisy, denoised, variance)[0, :, 0],
+                               [0, 0, 0.1, 0.1, 0.1, 0.1, 0.1, 0, 0], rtol=1e-6, atol=1e-7)
