@@ -197,7 +197,9 @@ def main(argv: list[str] | None = None) -> int:
     log = lambda text: print(text, flush=True)  # noqa: E731
     run: dict[str, Any] = {"date": time.strftime("%Y-%m-%d %H:%M"), "command": "python -m fuzz.campaign "
                            + " ".join(argv if argv is not None else sys.argv[1:]), "inputs": {},
-                           "load_avg_before": os.getloadavg()[0]}
+                           "load_avg_before": os.getloadavg()[0],
+                           "commit": subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
+                                                    text=True).stdout.strip()}
     try:
         for name in names:
             start = record["targets"].get(name, {}).get("inputs", 0)

@@ -85,7 +85,7 @@ def _record(line: str, path: Path, number: int) -> SceneRecord:
         record = SceneRecord(int(obj["index"]), str(obj["split"]),
                              tuple(int(s) for s in obj["spp"]), tuple(str(a) for a in obj.get("aovs", [])),
                              tuple(int(s) for s in obj.get("variance_spp", [])))
-    except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
+    except (json.JSONDecodeError, KeyError, TypeError, ValueError, OverflowError) as exc:  # int(Infinity)
         raise DatasetError(f"{path}:{number}: malformed manifest line ({exc})") from None
     if record.index < 0 or record.split not in ("train", "val"):
         raise DatasetError(f"{path}:{number}: bad index {record.index} or split {record.split!r}")
