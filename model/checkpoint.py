@@ -326,20 +326,10 @@ def pixel_filter(header: dict[str, Any]) -> dict[str, Any]:
 
 
 def model_from_checkpoint(ckpt: Checkpoint) -> torch.nn.Module:
-    """Rebuild the network from the header's model config and load its weights (strict)."""
+    """Rebuild the network from the header's model config and load its weights (strict): the
+    tensors were checked against the config when the file was read (:func:`check_tensors`)."""
     model = build_model(model_config_of(ckpt.path, ckpt.header))
-    state = ckpt.prefixed("model/")
-    expected = model.state_dict()
-    missing, unexpected = sorted(set(expected) - set(state)), sorted(set(state) - set(expected))
-    if missing or unexpected:
-        raise CheckpointError(f"{ckpt.path}: weights do not match the model config "
-                              f"(missing: {', '.join(missing[:3]) or '-'}; "
-                              f"unexpected: {', '.join(unexpected[:3]) or '-'})")
-    for key, value in expected.items():
-        if state[key].shape != value.shape or state[key].dtype != value.dtype:
-            raise CheckpointError(f"{ckpt.path}: weight {key} has shape {tuple(state[key].shape)} "
-                                  f"{state[key].dtype}, the model config needs {tuple(value.shape)} {value.dtype}")
-    model.load_state_dict(state, strict=True)
+    model.load_state_dict(ckpt.prefixed("model/"), strict=True)
     return model
 
 

@@ -151,8 +151,8 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory(prefix="mutation-") as tmp:
         copy = copy_checkout(Path(tmp))
         for module in chosen:
-            record["modules"][module.path] = run_module(module, copy, log)
-            done = record["modules"][module.path]
+            done = record["modules"][module.path] = run_module(module, copy, log)
+            done.update(commit=record["commit"], date=record["date"])
             log(f"{module.path}: {done['killed']}/{done['mutants']} killed, score {done['score']}")
             args.result.write_text(json.dumps(record, indent=1) + "\n")
     record["load_avg_after"] = os.getloadavg()[0]

@@ -218,3 +218,25 @@ def test_replaced_layer_is_converted_when_written(tmp_path: Path, rng: np.random
     back = read_exr_file(tmp_path / "out.exr").parts[0].channels["G"]
     assert back.dtype == np.float16 and np.array_equal(back, np.asarray(plane))
     assert np.array_equal(back, np.minimum(image[:, :, 1], 65504).astype(np.float16))
+
+
+def test_the_bare_rgb_wins_over_a_named_colour_layer(tmp_path: Path, rng: np.random.Generator) -> None:
+    OpenEXR.File({}, {**planes(rng, "", "RGB"), **planes(rng, "color", "RGB")}).write(str(tmp_path / "b.exr"))
+    assert pick_color_layer(read_exr_file(tmp_path / "b.exr")).name == ""
+
+
+def test_aux_layers_beside_the_chosen_colour_layer(tmp_path: Path, rng: np.random.Generator) -> None:
+    """Two view layers, each with its denoising albedo: the albedo of the picked view layer; with
+    two albedos beside it, none."""
+    channels = {**planes(rng, "A.Combined", "RGB"), **planes(rng, "A.Denoising Albedo", "RGB"),
+                **planes(rng, "B.Combined", "RGB"), **planes(rng, "B.Denoising Albedo", "RGB")}
+    OpenEXR.File({}, dict(channels)).write(str(tmp_path / "two.exr"))
+    exr = read_exr_file(tmp_path / "two.exr")
+    for view in ("A", "B"):
+        color = pick_color_layer(exr, f"{view}.Combined")
+        assert find_aux_layer(exr, ALBEDO_WORDS, color, ("rgb",)).name == f"{view}.Denoising Albedo"
+    OpenEXR.File({}, {**channels, **planes(rng, "A.albedo", "RGB")}).write(str(tmp_path / "three.exr"))
+    exr = read_exr_file(tmp_path / "three.exr")
+    assert find_aux_layer(exr, ALBEDO_WORDS, pick_color_layer(exr, "A.Combined"), ("rgb",)) is None
+    assert find_aux_layer(exr, ALBEDO_WORDS, pick_color_layer(exr, "B.Combined"), ("rgb",)).name == \
+        "B.Denoising Albedo"

@@ -306,6 +306,9 @@ def test_headers_that_lie_about_the_network_are_refused_before_it_is_built(
                                               r"parameter \(8, 9, 7, 7\)"),
     ({"optim/0/secret": torch.zeros(8, 9, 7, 7)}, "optimiser tensor optim/0/secret has shape"),
     ({"rng/torch": torch.zeros(2, 2)}, r"tensor rng/torch has shape \(2, 2\) F32, expected 1-D U8"),
+    ({"rng/torch": torch.zeros(2, 2, dtype=torch.uint8)}, r"tensor rng/torch has shape \(2, 2\) U8"),
+    ({"rng/torch": torch.zeros(5, dtype=torch.float32)}, r"tensor rng/torch has shape \(5,\) F32"),
+    ({"optim/24/exp_avg": torch.zeros(3)}, "unexpected tensor 'optim/24/exp_avg'"),  # indices 0..23: 24 parameters
 ])
 def test_tensors_beside_the_weights_are_checked(saved: Path, replace: dict, message: str) -> None:
     _rewrite(saved, replace=replace)
@@ -318,6 +321,7 @@ def test_tensors_beside_the_weights_are_checked(saved: Path, replace: dict, mess
     ('{"format": "mc-densenet-denoiser-checkpoint", "format_version": 1, "step": 0}', "bad model config in checkpoint"),
     ('{"format": "mc-densenet-denoiser-checkpoint", "format_version": 1}', r"corrupt checkpoint header \(step None\)"),
     ("not json", "corrupt checkpoint header"),
+    ("[1, 2]", "corrupt checkpoint header"),
 ])
 def test_header_json_that_breaks_parsers(saved: Path, text: str, message: str) -> None:
     tensors = safetensors.torch.load_file(str(saved))
@@ -337,3 +341,30 @@ def test_header_fields_of_the_wrong_type(saved: Path, changes: dict, message: st
     _rewrite(saved, header_changes=changes)
     with pytest.raises(CheckpointError, match=f"m.ckpt: corrupt checkpoint header \\({message}"):
         read_checkpoint(saved)
+
+
+def test_there_are_as_many_parameters_as_the_optimiser_indices_assume() -> None:
+    assert len(list(build_model(CONFIG).parameters())) == 24
+
+
+@pytest.mark.parametrize("group, message", [
+    ({"params": ["a"]}, "corrupt optimiser parameter group"),
+    ({"params": [0], "betas": "x"}, "corrupt optimiser parameter group"),
+    ({"params": [0], "betas": [0.9, "x"]}, "corrupt optimiser parameter group"),
+    ({"params": [0], "lr": "fast"}, "corrupt optimiser parameter group"),
+])
+def test_optimiser_groups_of_the_wrong_shape(saved: Path, group: dict, message: str) -> None:
+    """Adam's hyper-parameters are numbers, flags or null (a string would fail only at the next step)."""
+    ckpt = read_checkpoint(saved)
+    groups = [{**ckpt.header["optimizer"]["param_groups"][0], **group}]
+    _rewrite(saved, header_changes={"optimizer": {**ckpt.header["optimizer"], "param_groups": groups}})
+    fresh = torch.optim.Adam(build_model(CONFIG).parameters())
+    with pytest.raises(CheckpointError, match=f"m.ckpt: {message}"):
+        restore_optimizer(read_checkpoint(saved), fresh)
+
+
+def test_no_optimiser_state_to_resume_from(saved: Path, tmp_path: Path) -> None:
+    strip_optimizer(saved, tmp_path / "stripped.ckpt")
+    fresh = torch.optim.Adam(build_model(CONFIG).parameters())
+    with pytest.raises(CheckpointError, match="stripped.ckpt: has no Adam optimiser state to resume from"):
+        restore_optimizer(read_checkpoint(tmp_path / "stripped.ckpt"), fresh)
