@@ -559,10 +559,43 @@ def denoise_tile_memory(results: Results) -> list[str]:
             *_table(["preset", "setting", *(f"{s}x{s}" for s in sides)], rows, right=2)]
 
 
+def fuzz(results: Results) -> list[str]:
+    """Mutated inputs per reader over the fuzz campaign's lifetime, their outcomes, the failures."""
+    data = results.json("fuzz")
+    last = data["runs"][-1] if data.get("runs") else {}
+    rows = []
+    for name, t in data["targets"].items():
+        open_failures = sum(1 for f in t["failures"] if not f.get("fixed_by"))
+        rows.append([name, _f(t["inputs"]), _f(t["statuses"].get("ok", 0)), _f(t["statuses"].get("error", 0)),
+                     _f(len(t["failures"])), _f(open_failures)])
+    earlier = "; ".join(f"{r['date']} `{r['command']}` (code of {r.get('commit', 'an unrecorded commit')})"
+                        for r in data.get("runs", []))
+    note = (f"Lifetime totals over the campaigns: {earlier}. A result: exit 0; an error: exit 1 or 2 with one "
+            "line `PROG: error: ...`; anything else is a failure (a traceback, other output, a crash or hang, "
+            "> 5 s, > 1 GB, an input changed); open: not yet fixed with a regression test.")
+    return [caption("make fuzz", "benchmarks/results/fuzz.json", last, note), "",
+            *_table(["reader", "inputs", "results", "one-line errors", "failures found", "open"], rows)]
+
+
+def mutation(results: Results) -> list[str]:
+    """Mutation score of each core module against its tests, and its surviving mutants."""
+    data = results.json("mutation")
+    rows = [[f"`{m['module']}`" + (" (reading)" if m["module"].endswith("checkpoint.py") else
+                                    " (layer choice)" if m["module"].endswith("exr_layers.py") else ""),
+             ", ".join(f"`{t}`" for t in m["tests"]), _f(m["mutants"]), _f(m["killed"]), _f(len(m["survived"])),
+             f"{m['score']:.2f}", m.get("commit", "-")] for m in data["modules"].values()]
+    note = ("A mutant is killed when the module's tests fail on it; score = killed / mutants; code: the commit "
+            "each module was mutated at (the last run's date and load above); the survivors are listed in "
+            "the result file.")
+    return [caption("make mutation", "benchmarks/results/mutation.json", data, note), "",
+            *_table(["module", "tests", "mutants", "killed", "survived", "score", "code"], rows, right=2)]
+
+
 TABLES: dict[str, Callable[[Results], list[str]]] = {
     f.__name__: f for f in (models, strip_caption, unknown_spp, image_noise, denoise_process, scoreboard, scoreboard_scenes, noise_guard, noise_guard_settings, energy, ensemble, inference,
                             multiscale_presets, roofline, budget, presets, validation, val_scenes, trend, ablations,
-                            train_throughput, scaleout, extremes, render_memory, denoise_memory, denoise_tile_memory)}
+                            train_throughput, scaleout, extremes, render_memory, denoise_memory, denoise_tile_memory,
+                            fuzz, mutation)}
 
 
 def pages(root: Path = ROOT) -> list[Path]:
