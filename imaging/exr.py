@@ -8,6 +8,10 @@ Files are written a block of rows at a time through OpenEXR's scanline writer
 (``OpenEXR.OutputFile``, which takes rows in pieces), so the planes made for the file stay within
 a bound at any image size: ``OpenEXR.File`` writes whole contiguous planes only (and reads a
 strided view's memory as if it were contiguous). The bytes are those ``OpenEXR.File`` writes.
+
+Files are read only after their headers have been checked against the file and the memory left
+(:mod:`imaging.exr_header`, :mod:`imaging.memory_limit`); :func:`read_exr` reads a single-part
+scanline file a block of rows at a time through OpenEXR's scanline reader.
 """
 from __future__ import annotations
 

@@ -4,8 +4,8 @@ code 1 or 2, no traceback, well under 1.5 GB of peak memory, and no input change
 The headline cases run as their own processes, their peak resident memory read from the kernel's
 accounting of that child alone (``os.wait4``): a 4 KB PFM claiming 100000x100000 pixels, a Radiance
 HDR claiming 60000x60000, an EXR claiming a 100000x100000 data window, and a checkpoint whose header
-says growth 4096 beside fast-sized tensors (for ``denoise --model`` and ``train --resume``). The rest
-run in this process (the CLI mains, stderr captured at the file descriptors).
+says growth 4096 beside the tensors of the shipped flat net (for ``denoise --model`` and ``train
+--resume``). The rest run in this process (the CLI mains, stderr captured at the file descriptors).
 """
 from __future__ import annotations
 
@@ -83,7 +83,7 @@ def lies(tmp_path_factory: pytest.TempPathFactory) -> Path:
     (d / "lie.hdr").write_bytes(b"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n-Y 60000 +X 60000\n" + b"\x80" * 4000)
     lying_exr(d / "lie.exr", (0, 0, 99999, 99999))
     write_exr(d / "in.exr", np.random.default_rng(0).random((16, 16, 3)).astype(np.float32))
-    lying_checkpoint(d / "growth4096.ckpt", ROOT / "model" / "weights" / "fast.ckpt", growth=4096)
+    lying_checkpoint(d / "growth4096.ckpt", ROOT / "model" / "weights" / "flat-s-allspp.ckpt", growth=4096)
     write_tiny_checkpoint(d / "tiny.ckpt")
     return d
 
@@ -161,7 +161,7 @@ def test_overwrite_replaces_the_input_when_asked(lies: Path, work: Path, capfd: 
     noisy = read_exr(work / "in.exr").rgb
     assert _denoise(lies, str(work / "in.exr"), str(work / "in.exr"), "--overwrite") == 0
     capfd.readouterr()
-    assert read_exr(work / "in.exr").metadata["denoised_by"].startswith("tiny")
+    assert "tiny" in read_exr(work / "in.exr").metadata["denoised_by"]
     assert read_exr(work / "in.exr").rgb.shape == noisy.shape
 
 

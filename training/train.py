@@ -131,9 +131,10 @@ def _check_scene_counts(data_config: dict[str, Any], ckpt: Checkpoint | None, co
     saved = ckpt.header.get("data_config") if ckpt is not None else None
     if not saved:
         return
-    olds = [saved, *(saved.get("extra_data") or [])]
-    if not isinstance(saved.get("extra_data") or [], list) or not all(isinstance(o, dict) for o in olds):
+    extra = saved.get("extra_data") or []
+    if not isinstance(extra, list) or not all(isinstance(o, dict) for o in extra):
         raise CheckpointError(f"{ckpt.path}: corrupt data_config in checkpoint")
+    olds = [saved, *extra]
     folders = (config.data, *config.extra_data)
     for folder, old, new in zip(folders, olds, [data_config, *data_config.get("extra_data", [])]):
         if "scenes" in old and old["scenes"] != new["scenes"]:
