@@ -263,10 +263,10 @@ def train_config_seeds(folder: Path) -> list[Seed]:
     from model.config import PRESETS
     from training.train_config import TrainConfig
 
-    full = TrainConfig(data="DATA", out="OUT", model=PRESETS["fast"], steps=10, batch=2).to_dict()
+    full = TrainConfig(data="DATA", out="OUT", model=PRESETS["flat-s"], steps=10, batch=2).to_dict()
     full.pop("data")
     full.pop("out")
-    small = {"model": {"preset": "u-fast", "levels": 2}, "steps": 5, "lr": 0.001}
+    small = {"model": {"preset": "unet-s", "levels": 2}, "steps": 5, "lr": 0.001}
     return [Seed("full.json", json.dumps(full, indent=1).encode(), text=True),
             Seed("small.json", json.dumps(small).encode(), text=True)]
 

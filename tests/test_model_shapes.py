@@ -33,16 +33,16 @@ def test_meta_state_is_the_built_state_and_bounds_hold(config: ModelConfig) -> N
 
 
 def test_absurd_sizes_are_bounded_before_anything_is_built() -> None:
-    """growth 4096 on the fast preset: the bound alone says 6e9 parameters (counted, not built)."""
-    huge = dataclasses.replace(PRESETS["fast"], growth=4096)
+    """growth 4096 on the flat-s preset: the bound alone says 6e9 parameters (counted, not built)."""
+    huge = dataclasses.replace(PRESETS["flat-s"], growth=4096)
     assert min_parameters(huge) == 10 * 9 * 4 * 4096 * 4096
     deep = ModelConfig(arch="dense_unet", levels=6, layers=4096, growth=8, init_features=8)
     assert min_state_entries(deep) == 12 * 4096 * 13
 
 
 def test_training_refuses_what_cannot_fit(monkeypatch: pytest.MonkeyPatch) -> None:
-    check_fits_in_memory(PRESETS["fast"])
+    check_fits_in_memory(PRESETS["flat-s"])
     monkeypatch.setattr(memory_limit, "available_bytes", lambda: 10 * 2**30)
     with pytest.raises(ConfigError, match=r"the model config implies at least 6,039,797,760 parameters "
                                           r"\(92,160 MB to train\), more than the 10,240 MB of memory available"):
-        check_fits_in_memory(dataclasses.replace(PRESETS["fast"], growth=4096))
+        check_fits_in_memory(dataclasses.replace(PRESETS["flat-s"], growth=4096))
