@@ -68,12 +68,11 @@ def noise_stats(rgb: np.ndarray) -> NoiseStats:
     nyq_parts, mid_parts = [], []
     if height >= 5 and width >= 5:
         for y in _strip_starts(height):
-            block = np.asarray(rgb[y:y + STRIP_ROWS + 4, :, :3], np.float32)
+            block = np.asarray(rgb[y:y + STRIP_ROWS + 4, :, :3], np.float64)  # float64: no sum overflows
             if block.shape[0] < 5:
                 continue
-            with np.errstate(invalid="ignore", over="ignore"):
-                total = np.nan_to_num(block, nan=0.0, posinf=0.0, neginf=0.0).clip(0.0, None).sum(axis=2)
-            x = np.log1p(total)
+            total = np.nan_to_num(block, nan=0.0, posinf=0.0, neginf=0.0).clip(0.0, None).sum(axis=2)
+            x = np.log1p(total).astype(np.float32)
             nyq = np.abs(_separable(x, _NYQ))[1:-1, 1:-1]
             mid = np.abs(_separable(x, _MID))
             busy = (nyq > 0) | (mid > 0)

@@ -16,8 +16,9 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
+TOOLS = ("benchmarks", "fuzz", "mutation")  # run from the command line; nothing of the product imports them
 PACKAGES = ("imaging", "console", "rendering", "scenes", "dataset_gen", "model", "denoise", "training",
-            "pipeline", "benchmarks")
+            "pipeline", *TOOLS)
 FOUNDATION = {"imaging", "console"}
 ALLOWED = {
     "imaging": {"imaging"},
@@ -28,8 +29,8 @@ ALLOWED = {
     "model": {"imaging", "model"},
     "denoise": {"imaging", "rendering", "model", "denoise"},
     "training": FOUNDATION | {"rendering", "scenes", "dataset_gen", "model", "denoise", "training"},
-    "pipeline": set(PACKAGES) - {"benchmarks"},
-    "benchmarks": set(PACKAGES),
+    "pipeline": set(PACKAGES) - set(TOOLS),
+    **{tool: set(PACKAGES) for tool in TOOLS},
 }
 
 
