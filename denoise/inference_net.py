@@ -29,7 +29,7 @@ What changes against the training module (eval mode), and why it is exact up to 
   concatenation of NCHW planes and a reorder.
 
 Input and output are those of the original model: Nx3xHxW (Nx9xHxW with aux) transfer-space image
--> Nx3xHxW transfer-space RGB. ``tests/test_infer_speedups.py`` bounds the difference.
+-> Nx3xHxW transfer-space RGB. ``tests/test_inference_net.py`` bounds the difference.
 """
 from __future__ import annotations
 

@@ -2,7 +2,7 @@
 
 A :class:`Target` writes its seed files (made with the tests' own helpers: tiny EXRs as
 ``write_exr`` and the layouts of ``tests/test_exr_layers.py``, PFM and RGBE files as Mitsuba
-writes them, the tiny checkpoint of ``tests/test_denoise.py``, a scene with an include, a train
+writes them, the tiny checkpoint of ``tests/test_denoiser.py``, a scene with an include, a train
 config, a synthetic dataset's ``dataset.json`` and manifest), mutates one of them
 (:mod:`fuzz.mutate`) and hands the result to the command that reads it, in this process: the CLI
 main itself (``denoise``), or, where the command would go on to render or train, the same
@@ -105,7 +105,7 @@ class Context:
     @classmethod
     def create(cls, root: Path) -> Context:
         from imaging.exr import write_exr
-        from tests.test_denoise import write_tiny_checkpoint
+        from tests.test_denoiser import write_tiny_checkpoint
         from training.synthetic import write_synthetic_dataset
 
         root.mkdir(parents=True, exist_ok=True)
@@ -201,7 +201,7 @@ def checkpoint_seeds(folder: Path) -> list[Seed]:
     from model.architectures import build_model
     from model.checkpoint import save_checkpoint
     from model.config import ModelConfig
-    from tests.test_denoise import write_tiny_checkpoint
+    from tests.test_denoiser import write_tiny_checkpoint
 
     write_tiny_checkpoint(folder / "tiny.ckpt")
     torch.manual_seed(0)

@@ -37,7 +37,7 @@ from training.dataset import load_val_images, read_manifest
 from training.synthetic import write_synthetic_dataset
 from pipeline.cli import denoise_main
 from pipeline.cli import main as render_main
-from tests.test_denoise import write_tiny_checkpoint
+from tests.test_denoiser import write_tiny_checkpoint
 
 ROOT = Path(__file__).resolve().parents[1]
 DEMO = ROOT / "scenes" / "examples" / "demo.xml"

@@ -16,7 +16,7 @@ from pipeline.evaluation import RenderSettings
 from pipeline.budget import (BudgetError, RenderCost, budget_candidates, denoise_seconds, fit_spp,
                              load_curves, plan_budget, probe_render, window_pixels)
 from pipeline.cli import main
-from tests.test_denoise import write_tiny_checkpoint
+from tests.test_denoiser import write_tiny_checkpoint
 
 DEMO = Path(__file__).resolve().parents[1] / "scenes" / "examples" / "demo.xml"
 RENDER = RenderCost(fixed_s=0.5, per_spp_s=0.01)

@@ -26,7 +26,7 @@ from model.checkpoint import read_checkpoint
 from training.cli import main as train_main
 from training.synthetic import write_synthetic_dataset
 from pipeline.cli import main as render_main
-from tests.test_denoise import write_tiny_checkpoint
+from tests.test_denoiser import write_tiny_checkpoint
 
 ROOT = Path(__file__).resolve().parents[1]
 DEMO = ROOT / "scenes" / "examples" / "demo.xml"

@@ -16,7 +16,7 @@ from pipeline.cli import denoise_main
 from denoise.denoiser import Denoiser
 from pipeline.denoise_file import combine_halves, read_input
 from denoise.noise_guard import strength_for
-from tests.test_denoise import write_tiny_checkpoint
+from tests.test_denoiser import write_tiny_checkpoint
 from tests.test_exr_layers import blender, mitsuba_aov, multipart, planes
 
 H, W = 12, 16

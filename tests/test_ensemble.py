@@ -15,7 +15,7 @@ from denoise.ensemble import (COMBINE_BYTES_PER_PIXEL, combine, combine_in_place
                               weight_bytes_per_pixel, weighted_sum)
 from model.registry import range_suffix, split_range
 from denoise.noise_guard import clean_render
-from tests.test_denoise import write_tiny_checkpoint
+from tests.test_denoiser import write_tiny_checkpoint
 from tests.test_model_unet import TINY as TINY_UNET
 from tests.test_noise_guard import _traced_peak
 

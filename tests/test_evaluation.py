@@ -20,7 +20,7 @@ from denoise.denoiser import Denoiser
 from pipeline.evaluation import (BARE, OIDN, RenderSettings, denoise_outputs, evaluate, make_denoiser, render_input,
                                  score)
 from denoise.oidn import oidn_available
-from tests.test_denoise import TINY, write_tiny_checkpoint
+from tests.test_denoiser import TINY, write_tiny_checkpoint
 
 ROOT = Path(__file__).resolve().parents[1]
 DEMO = ROOT / "scenes" / "examples" / "demo.xml"

@@ -29,7 +29,7 @@ from imaging.exr import read_exr, write_exr
 from imaging.png import PNG_MAGIC, to_display
 from pipeline.cli import denoise_main, main as render_main, tradeoff_main
 from tests.test_bad_input import call, one_line
-from tests.test_denoise import write_tiny_checkpoint
+from tests.test_denoiser import write_tiny_checkpoint
 from training.cli import main as train_main
 from training.synthetic import write_synthetic_dataset
 

@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 from model.registry import AUTO, Registry, RegistryError, registry, split_member, split_range
-from tests.test_denoise import write_tiny_checkpoint
+from tests.test_denoiser import write_tiny_checkpoint
 
 
 def manifest(folder: Path, **changes: object) -> Path:

@@ -12,7 +12,7 @@ import pytest
 from imaging.exr import read_exr, write_exr
 from pipeline.cli import denoise_main, main
 from denoise.denoiser import Denoiser
-from tests.test_denoise import write_tiny_checkpoint
+from tests.test_denoiser import write_tiny_checkpoint
 
 DEMO = Path(__file__).resolve().parents[1] / "scenes" / "examples" / "demo.xml"
 OUTPUTS = ("noisy.exr", "denoised.exr", "oidn.exr", "reference.exr", "noisy.png", "denoised.png",

@@ -23,7 +23,7 @@ from model.transfer import get_transfer
 from denoise.precision import FLAT_BF16_MAX_SPP, PRECISIONS, compute_dtype, cpu_flags, native_bfloat16
 from pipeline.cli import denoise_main
 from denoise.denoiser import Denoiser
-from tests.test_infer_speedups import _trained_like
+from tests.test_inference_net import _trained_like
 from tests.test_model_unet import TINY, trained_like
 
 BF16_ATOL = 0.02

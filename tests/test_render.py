@@ -214,7 +214,7 @@ def test_peak_rss_sees_memory_held_in_the_block() -> None:
 
 def test_render_and_denoise_renders_in_crops_and_reports_render_memory(tmp_path: Path) -> None:
     from pipeline.cli import main
-    from tests.test_denoise import write_tiny_checkpoint
+    from tests.test_denoiser import write_tiny_checkpoint
 
     ckpt = write_tiny_checkpoint(tmp_path / "tiny.ckpt")
     out = tmp_path / "run"

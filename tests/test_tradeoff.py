@@ -15,7 +15,7 @@ from pipeline.evaluation import RenderSettings
 from denoise.oidn import oidn_available
 from pipeline.tradeoff import Point, TradeoffConfig, analyse, model_labels
 from pipeline.tradeoff_report import recommendation, recommendation_line
-from tests.test_denoise import write_tiny_checkpoint
+from tests.test_denoiser import write_tiny_checkpoint
 
 DEMO = Path(__file__).resolve().parents[1] / "scenes" / "examples" / "demo.xml"
 
