@@ -140,6 +140,8 @@ def test_the_default_runs_its_flat_net_in_bfloat16_up_to_16_spp_only() -> None:
     # the spp unknown: the U-Net on a noisy image, the flat net in bfloat16 on a cleaner one, in float32
     # on a converged one
     assert [m.spec for m in default.active(None, 0.5)] == ["unet-m-k5-lowspp"]
+    assert [(m.spec, m.precision) for m in default.active(None, 0.06)] == [("flat-s-allspp", bf16)]
     assert [(m.spec, m.precision) for m in default.active(None, 0.05)] == [("flat-s-allspp", bf16)]
+    assert [(m.spec, m.precision) for m in default.active(None, 0.04)] == [("flat-s-allspp", "float32")]
     assert [(m.spec, m.precision) for m in default.active(None, 0.01)] == [("flat-s-allspp", "float32")]
-    assert Denoiser(precision="float32").active(None, 0.05)[0].precision == "float32"  # asked for: it wins
+    assert Denoiser(precision="float32").active(None, 0.06)[0].precision == "float32"  # asked for: it wins
