@@ -141,6 +141,14 @@ class DenoiseResult:
     choice: str = ""  # the registry entry or spec that ran (``auto``: the entry it chose)
     notes: tuple[str, ...] = ()  # what the caller should know: an unknown spp, filtered noise
     noise: NoiseStats | None = None  # what the image tells of its own noise (:mod:`denoise.image_noise`)
+    precisions: tuple[str, ...] = ()  # the float format of each of ``models``
+
+    @property
+    def precision(self) -> str:
+        """The float format of the networks that ran (``+``-joined where they differ)."""
+        if len(set(self.precisions)) <= 1:
+            return "".join(self.precisions[:1])
+        return SEPARATOR.join(self.precisions)
 
     def energy_record(self) -> dict[str, float] | None:
         """The energy correction's entry of metrics.json and of ``denoise``'s report (None: off)."""
@@ -418,7 +426,8 @@ class Denoiser:
             factor = correct_in_place(rgb, out, self.max_bytes, exposure, self.energy, workers)
         return DenoiseResult(out, nonfinite, negative, time.perf_counter() - start, count[0], weight,
                              None if weights is None else weights[:, :, 0], factor, network,
-                             tuple(m.path.stem for m in members), choice, notes, noise)
+                             tuple(m.path.stem for m in members), choice, notes, noise,
+                             tuple(m.precision for m in members))
 
     def notes(self, spp: int | None, choice: str, members: Sequence[Network], noise: NoiseStats,
               pixel_filter: str | None = None) -> tuple[str, ...]:

@@ -192,7 +192,7 @@ def denoise_file(cfg: DenoiseFileConfig) -> dict[str, Any]:
         "denoise_s": result.seconds, "model": denoiser.name, "ran": result.choice,
         "models_run": list(result.models), "spp": spp or None, "notes": list(result.notes),
         "noise": {"level": result.noise.level, "nyquist_ratio": result.noise.ratio} if result.noise else None,
-        "precision": denoiser.precision,
+        "precision": result.precision,
         "flips": denoiser.flips, "nonfinite_values": result.nonfinite,
         "negative_values": result.negative,
         "noise_guard": None if variance is None else {
@@ -204,12 +204,20 @@ def denoise_file(cfg: DenoiseFileConfig) -> dict[str, Any]:
     return json_safe(out)
 
 
+def _ran(models: list[str], precision: str) -> str:
+    """``a + b in bfloat16``, or each network with its own format where they differ."""
+    formats = precision.split("+")
+    if len(set(formats)) == 1:
+        return f"{' + '.join(models)} in {formats[0]}"
+    return " + ".join(f"{m} ({f})" for m, f in zip(models, formats))
+
+
 def denoise_summary(record: dict[str, Any]) -> list[str]:
     """``denoise``'s table of one run's record (:func:`denoise_file`)."""
     inputs = record["input"] if isinstance(record["input"], str) else " + ".join(record["input"])
     spp = f"{record['spp']} spp" if record.get("spp") else "spp unknown"
     lines = [f"{inputs} -> {record['output']} ({record['layout']})",
-             f"model {record['model']} ({spp}): ran {'+'.join(record['models_run'])} in {record['precision']}, "
+             f"model {record['model']} ({spp}): ran {_ran(record['models_run'], record['precision'])}, "
              f"{record['denoise_s']:.2f} s"]
     guard = record.get("noise_guard")
     if guard:

@@ -203,7 +203,7 @@ def _metrics(run: _Run) -> dict[str, Any]:
     h, w = noisy.rgb.shape[:2]
     metrics: dict[str, Any] = {
         "scene": str(cfg.scene), "spp": run.spp, "resolution": [w, h], "seed": cfg.seed,
-        "model": {"name": denoiser.name, "sha256": denoiser.sha256, "precision": denoiser.precision,
+        "model": {"name": denoiser.name, "sha256": denoiser.sha256, "precision": result.precision,
                   "flips": denoiser.flips, "config": denoiser.config.to_dict(), "ran": result.choice,
                   "models_run": list(result.models), **denoiser.ensemble_record()},
         "notes": list(result.notes),

@@ -295,3 +295,24 @@ def test_weights_are_powers_of_inverse_errors(power: float, first: float) -> Non
     np.testing.assert_allclose(w[:, :, 0], first, rtol=1e-5)
     with pytest.raises(ValueError, match="power"):
         combine_weights(noisy, [noisy], zero, power=0)
+
+
+def test_the_record_names_the_float_format_of_each_network_that_ran(
+        tmp_path: Path, two_models: tuple[Path, Path], capsys: pytest.CaptureFixture) -> None:
+    """An ensemble's members in two formats: the record and the table give the formats of the
+    networks that ran, not of every member."""
+    truth, _, _ = _case(16, 24, seed=8)
+    write_exr(tmp_path / "a.exr", truth, metadata={"spp": 16})
+    low = write_tiny_checkpoint(tmp_path / "low.ckpt", TINY_UNET, seed=3, max_spp=8)
+    spec = f"{two_models[0]}@float32+{two_models[1]}@bfloat16+{low}@bfloat16"
+    den = Denoiser(spec)
+    result = den.denoise_array(truth, spp=16)
+    assert result.models == ("flat", "unet") and result.precisions == ("float32", "bfloat16")
+    assert result.precision == "float32+bfloat16" and den.precision == "float32+bfloat16+bfloat16"
+    assert denoise_main([str(tmp_path / "a.exr"), str(tmp_path / "o.exr"), "--model", spec]) == 0
+    assert "ran flat (float32) + unet (bfloat16)," in capsys.readouterr().out
+    assert denoise_main([str(tmp_path / "a.exr"), str(tmp_path / "o2.exr"), "--model", spec, "--json"]) == 0
+    printed = json.loads(capsys.readouterr().out)
+    assert printed["models_run"] == ["flat", "unet"] and printed["precision"] == "float32+bfloat16"
+    one = Denoiser(f"{two_models[1]}@bfloat16").denoise_array(truth, spp=16)
+    assert one.precisions == ("bfloat16",) and one.precision == "bfloat16"
