@@ -17,6 +17,8 @@ from denoise.denoiser import Denoiser, count_invalid
 from denoise.energy import correct_in_place
 from denoise.noise_guard import blend_weight, clean_render, guard
 
+from tests.nets import randomize_batchnorm
+
 TINY = ModelConfig(layers=3, growth=4, init_features=8)
 
 
@@ -26,11 +28,7 @@ def write_tiny_checkpoint(path: Path, config: ModelConfig = TINY, seed: int = 0,
     (``min_spp`` / ``max_spp``: recorded as trained on renders of at least / most that many spp)."""
     torch.manual_seed(seed)
     model = build_model(config)
-    with torch.no_grad():
-        for m in model.modules():
-            if isinstance(m, torch.nn.BatchNorm2d):
-                m.running_mean.uniform_(-0.1, 0.1)
-                m.running_var.uniform_(0.5, 1.5)
+    randomize_batchnorm(model, 0.1, (0.5, 1.5))
     limits = {k: v for k, v in (("min_spp", min_spp), ("max_spp", max_spp)) if v}
     save_checkpoint(path, model, step=0, train_config=limits or None)
     return path

@@ -40,6 +40,7 @@ from training.synthetic import write_synthetic_dataset
 from model.transfer import HDR_MAX, get_transfer
 from pipeline.cli import denoise_main
 from denoise.denoiser import Denoiser
+from tests.nets import randomize_batchnorm
 from model.registry import registry
 
 TINY = ModelConfig(layers=3, growth=4, init_features=8)
@@ -56,11 +57,8 @@ def random_network(config: ModelConfig = TINY, seed: int = 0) -> FlatDenseNet:
     """An untrained network that is not the identity: random BatchNorm statistics, random last conv."""
     torch.manual_seed(seed)
     model = build_model(config)
+    randomize_batchnorm(model, 0.1, (0.5, 1.5))
     with torch.no_grad():
-        for m in model.modules():
-            if isinstance(m, torch.nn.BatchNorm2d):
-                m.running_mean.uniform_(-0.1, 0.1)
-                m.running_var.uniform_(0.5, 1.5)
         torch.nn.init.normal_(model.tail[-1].weight, std=0.05)
     return model.eval()
 

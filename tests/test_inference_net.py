@@ -21,6 +21,7 @@ from denoise.inference_net import bn_affine, fold_conv_bn, relu_affine_as_clamp
 from model.architectures import build_model
 from imaging.errors import DenoiserError
 from denoise.denoiser import Denoiser
+from tests.nets import randomize_batchnorm
 
 NET_ATOL = 2e-5
 CHAIN_RTOL = 2e-4
@@ -30,14 +31,8 @@ def _trained_like(config: ModelConfig, seed: int = 0, positive: bool = False) ->
     """A random model with BN statistics and affine parameters of both signs, as after training."""
     torch.manual_seed(seed)
     model = build_model(config)
+    randomize_batchnorm(model, 0.2, (0.3, 2.0), bias=0.2, positive=positive)
     with torch.no_grad():
-        for m in model.modules():
-            if isinstance(m, torch.nn.BatchNorm2d):
-                m.running_mean.uniform_(-0.2, 0.2)
-                m.running_var.uniform_(0.3, 2.0)
-                m.weight.uniform_(0.1 if positive else -1.5, 1.5)  # positive: as trained ones are
-                m.weight[0] = 0.0  # a dead channel: relu(0*x + t) is a constant
-                m.bias.uniform_(-0.2, 0.2)
         torch.nn.init.normal_(model.tail[-1].weight, std=0.05)  # not the identity at init
     return model.eval()
 

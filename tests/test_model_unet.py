@@ -12,6 +12,7 @@ from model.architectures import alignment, build_model, receptive_radius
 from model.config import PRESETS, ModelConfig
 from denoise.chain import denoise_image
 from model.unet import MultiScaleDenoiser, add_kernel_, apply_kernel, conv_macs_per_pixel, kernel_offsets, pad_to_alignment
+from tests.nets import randomize_batchnorm
 
 TINY = ModelConfig(arch="dense_unet", layers=1, growth=4, init_features=8, levels=2, transfer="pu")
 
@@ -20,14 +21,8 @@ def trained_like(config: ModelConfig, seed: int = 0, positive: bool = False) -> 
     """A random multi-scale model with BN statistics of both signs and a non-zero tail, in eval mode."""
     torch.manual_seed(seed)
     model = build_model(config)
+    randomize_batchnorm(model, 0.3, (0.3, 2.0), bias=0.3, positive=positive)
     with torch.no_grad():
-        for m in model.modules():
-            if isinstance(m, torch.nn.BatchNorm2d):
-                m.running_mean.uniform_(-0.3, 0.3)
-                m.running_var.uniform_(0.3, 2.0)
-                m.weight.uniform_(0.1 if positive else -1.5, 1.5)  # positive: as trained ones are
-                m.weight[0] = 0.0  # a dead channel
-                m.bias.uniform_(-0.3, 0.3)
         torch.nn.init.normal_(model.tail.weight, std=0.05)
         torch.nn.init.normal_(model.skip.weight, std=0.05)
         if model.head is not None:
