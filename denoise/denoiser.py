@@ -155,6 +155,17 @@ class DenoiseResult:
         return None if self.energy_factor is None else {"mean_factor": self.energy_factor}
 
 
+def member_precision(own: str | None, asked: str) -> str:
+    """The float format a member loads in: the caller's ``asked`` one (``--precision``), else under
+    ``auto`` the member's ``own`` (``NAME@FORMAT``), where ``bfloat16`` holds only on a CPU that computes
+    it natively (emulated it is slower than float32: :mod:`denoise.precision`)."""
+    from denoise.precision import native_bfloat16
+
+    if asked != "auto" or not own or (own == "bfloat16" and not native_bfloat16()):
+        return asked
+    return own
+
+
 COUNT_BYTES_PER_PIXEL = 4  # count_invalid: one boolean mask of a row block's 3 channels at a time
 
 
@@ -231,9 +242,8 @@ class Denoiser:
         fix_mmap_threshold()
         use_huge_pages()  # before the first large tensor: the tiles' temporaries fault per 2 MiB
         self.optimize = optimize
-        # a member's own float format (``NAME@bfloat16`` in an entry) applies unless one was asked for
-        self._networks = {m: Network.load(m.path, optimize, m.precision if m.precision and precision == "auto"
-                                          else precision, (m.lo, m.hi), m.given)
+        self._networks = {m: Network.load(m.path, optimize, member_precision(m.precision, precision), (m.lo, m.hi),
+                                          m.given)
                           for m in self.selection.members}
         self.members = list(self._networks.values())
         self.device = choose_device(device)

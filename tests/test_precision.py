@@ -145,3 +145,18 @@ def test_the_default_runs_its_flat_net_in_bfloat16_up_to_16_spp_only() -> None:
     assert [(m.spec, m.precision) for m in default.active(None, 0.04)] == [("flat-s-allspp", "float32")]
     assert [(m.spec, m.precision) for m in default.active(None, 0.01)] == [("flat-s-allspp", "float32")]
     assert Denoiser(precision="float32").active(None, 0.06)[0].precision == "float32"  # asked for: it wins
+
+
+def test_a_members_own_bfloat16_holds_only_where_the_cpu_computes_it(monkeypatch: pytest.MonkeyPatch) -> None:
+    """``NAME@bfloat16`` under ``--precision auto``: bfloat16 on a CPU with it natively, the auto
+    rule (float32 for a flat net) elsewhere; an asked-for format always wins."""
+    import denoise.precision as precision_module
+    from denoise.denoiser import member_precision
+
+    for native, expected in ((True, "bfloat16"), (False, "auto")):
+        monkeypatch.setattr(precision_module, "native_bfloat16", lambda *_, n=native: n)
+        assert member_precision("bfloat16", "auto") == expected
+        assert member_precision("float32", "auto") == "float32"
+        assert member_precision(None, "auto") == "auto"
+        assert member_precision("bfloat16", "float32") == "float32"
+        assert member_precision("float32", "bfloat16") == "bfloat16"

@@ -158,6 +158,10 @@ def test_recipe_flags_refuse_what_the_recipe_sets(capsys: pytest.CaptureFixture)
     assert main(["--recipe", "smoke", "--out", "x", "--lr", "0.1", "--preset", "flat-m"]) == 1
     err = capsys.readouterr().err.strip()
     assert "--lr, --preset cannot be combined with --recipe" in err
+    for flags, named in ((["--seed", "0"], "--seed"), (["--no-oidn"], "--no-oidn"), (["--val-every", "0"], "--val-every"),
+                         (["--resume"], "--resume")):  # zero and False are values too
+        assert main(["--recipe", "smoke", "--out", "x", *flags]) == 1
+        assert f"{named} cannot be combined with --recipe" in capsys.readouterr().err
 
 
 def test_dry_run_prints_the_commands(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:

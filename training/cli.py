@@ -286,9 +286,11 @@ def _resume_hint(parser: argparse.ArgumentParser, args: argparse.Namespace, rank
 
 def recipe_run_from_args(args: argparse.Namespace) -> RecipeRun:
     """The :class:`RecipeRun` of a ``--recipe`` command; raises :class:`ConfigError` for a flag the
-    recipe sets."""
-    given = sorted(f"--{dest.replace('_', '-')}" for dest, value in vars(args).items()
-                   if dest not in _RECIPE_FLAGS and value not in (None, False))
+    recipe sets (any value other than the parser's default: ``--seed 0`` and ``--no-oidn`` count)."""
+    parser = build_parser()
+    flag = {a.dest: a.option_strings[0] for a in parser._actions if a.option_strings}
+    given = sorted(flag.get(dest, f"--{dest.replace('_', '-')}") for dest, value in vars(args).items()
+                   if dest not in _RECIPE_FLAGS and value != parser.get_default(dest))
     if given:
         raise ConfigError(f"{', '.join(given)} cannot be combined with --recipe (the recipe sets it; run control "
                           "only: --data, --init-from, --minutes, --cpu-minutes, --device, --threads, --workers, "
