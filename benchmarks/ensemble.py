@@ -15,7 +15,7 @@ runs that path). OIDN colour-only denoises the same images. Two sets:
 
 PSNR is tonemapped (:mod:`imaging.metrics`).
 
-    python -m benchmarks.ensemble --data data/train256 --data data/media256 [--members fast,u-high]
+    python -m benchmarks.ensemble --data data/train256 --data data/media256 [--members flat-s-allspp,unet-l-allspp]
         [--settings 3:0.3:1,3:0.3:2,...] [--spp 4,16,32,64,128,256] [--eval-dir DIR] [--quick]
 
 Writes benchmarks/results/ensemble.json and ensemble.md.
@@ -119,7 +119,8 @@ def main(argv: list[str] | None = None) -> int:
     p = OneLineParser(prog="python -m benchmarks.ensemble", description=__doc__.split("\n\n")[0])
     p.add_argument("--data", type=Path, action="append", default=[],
                    help="dataset folder (repeatable) whose 'val' scenes are the tuning set")
-    p.add_argument("--members", type=name_list, default=("fast", "u-high"), help="comma-separated models")
+    p.add_argument("--members", type=name_list, default=("flat-s-allspp", "unet-l-allspp"),
+                   help="comma-separated checkpoints")
     p.add_argument("--settings", default="3:0.3:1,3:1:1,2:0.3:2,3:0:2,3:0.1:2,3:0.3:2,3:1:2,5:0.3:2",
                    help="comma-separated RADIUS:LAM:POWER combinations")
     p.add_argument("--spp", type=int_list, default=(4, 16, 32, 64, 128, 256), help="eval scenes' spp")

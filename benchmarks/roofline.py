@@ -16,7 +16,7 @@ It prints, per preset, the bound next to the goal: the inference bound in second
 against OIDN's measured s/MP (benchmarks/results/inference.json, same machine), and the training
 bound in patches/s against 4x the naive rate (benchmarks/results/train_throughput.json).
 
-    python -m benchmarks.roofline [--presets fast,balanced,high,paper] [--repeat 5]
+    python -m benchmarks.roofline [--presets flat-s,flat-m,flat-l,paper] [--repeat 5]
 
 Writes benchmarks/results/roofline.json.
 """
@@ -120,7 +120,7 @@ def goals(presets: list[str]) -> dict[str, Any]:
 
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--presets", default="fast,balanced,high,paper")
+    p.add_argument("--presets", default="flat-s,flat-m,flat-l,paper")
     p.add_argument("--repeat", type=int, default=5)
     args = p.parse_args()
     names = args.presets.split(",")

@@ -8,7 +8,7 @@ batch-64 variant from one initialisation on one batch against a float64 computat
 step; exact variants should show the same float32 rounding error as naive, bf16 shows its own
 (what "does not change what is learned" means in numbers).
 
-    python -m benchmarks.train_throughput [--presets fast balanced high] [--rounds 3]
+    python -m benchmarks.train_throughput [--presets flat-s flat-m flat-l] [--rounds 3]
         [--steps 3] [--no-compile] [--quick]
 
 Prints a table and writes benchmarks/results/train_throughput.json (presets not measured in this

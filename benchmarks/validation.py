@@ -7,7 +7,7 @@ as the trainer's validation does (:class:`training.validate.Validator`: the netw
 images, tonemapped PSNR and relMSE), with the noisy input and OIDN 2.5 colour-only on the same
 images, per spp and overall.
 
-    python -m benchmarks.validation --data data/train256 --data data/media256 --models u-balanced,fast
+    python -m benchmarks.validation --data data/train256 --data data/media256 --models unet-m-k5-lowspp,flat-s-allspp
 
 Writes benchmarks/results/validation.json and validation.md (``--out`` for another folder).
 """

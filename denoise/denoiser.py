@@ -226,7 +226,7 @@ class Denoiser:
         import torch
 
         from denoise.flips import check_flips
-        from denoise.precision import check_precision
+        from denoise.precision import PRECISIONS, check_precision
         from model.device import choose_device
 
         try:
@@ -237,6 +237,9 @@ class Denoiser:
         if not 0 < max_memory_mb < float("inf"):  # also refuses NaN
             raise DenoiserError(f"max memory must be positive and finite, got {max_memory_mb} MB")
         self.selection = select(model)  # every member's file known before any load
+        for member in self.selection.members:  # NAME@FORMAT: a format this module knows
+            if member.precision is not None and member.precision not in PRECISIONS:
+                raise DenoiserError(f"{member.spec}: precision must be one of {', '.join(PRECISIONS)}")
         if threads:
             torch.set_num_threads(int(threads))
         fix_mmap_threshold()
@@ -392,6 +395,8 @@ class Denoiser:
         rgb = np.asarray(rgb)
         if rgb.ndim != 3 or rgb.shape[2] != 3 or min(rgb.shape[:2]) < 1:
             raise DenoiserError(f"expected an HxWx3 image, got shape {rgb.shape}")
+        if spp is not None and (isinstance(spp, bool) or not isinstance(spp, (int, np.integer)) or spp < 1):
+            raise DenoiserError(f"spp must be a positive integer or None (unknown), got {spp!r}")
         start = time.perf_counter()
         height, width = rgb.shape[:2]
         workers = pass_workers(height * width, torch.get_num_threads())  # threads of the numpy passes

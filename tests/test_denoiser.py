@@ -187,6 +187,13 @@ def test_bad_arguments_raise_clear_errors(tmp_path: Path, ckpt: Path) -> None:
         Denoiser(ckpt, max_memory_mb=0)
     with pytest.raises(DenoiserError, match="HxWx3"):
         Denoiser(ckpt).denoise_array(np.zeros((4, 4), np.float32))
+    for spp in (0, -4, 2.5, True):
+        with pytest.raises(DenoiserError, match="spp must be a positive integer or None"):
+            Denoiser(ckpt).denoise_array(np.zeros((4, 4, 3), np.float32), spp=spp)
+    with pytest.raises(DenoiserError, match="spp must be a positive integer"):
+        Denoiser("auto").denoise_array(np.zeros((4, 4, 3), np.float32), spp=0)
+    with pytest.raises(DenoiserError, match="@bf16: precision must be one of auto, float32, bfloat16"):
+        Denoiser(f"{ckpt}@bf16")
 
 
 def test_the_denoiser_names_what_it_runs_so_that_the_name_loads_it_again(ckpt: Path) -> None:

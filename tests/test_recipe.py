@@ -80,10 +80,27 @@ def _parse(text: str) -> object:
     (("val_fraction = 0.5", "val_fraction = 0.5\npixel_filter = \"blackman-harris\""),
      "unknown pixel filter 'blackman-harris' (valid: box, tent, gaussian"),
     (("steps = 3", "steps = 0"), "steps must be a positive integer"),
+    (("families = [\"cornell_box\", \"material_preview\"]", "families = \"media\""),
+     "families must be \"default\" or a list of names, got 'media'"),
+    (("name = \"second\"", "name = \"../up\""), "a stage's name is a folder name"),
+    (("name = \"second\"", "name = \"finetune\""), "(not 'finetune', the name of a fine-tune)"),
+    (("name = \"second\"", "name = 2"), "a stage's name is a folder name"),
 ])
 def test_bad_recipes_are_one_line_errors(change: tuple[str, str], message: str) -> None:
     text = TINY.replace(*change, 1)
     assert text != TINY
+    with pytest.raises(ConfigError) as exc:
+        _parse(text)
+    assert message in str(exc.value) and "\n" not in str(exc.value)
+
+
+@pytest.mark.parametrize("text, message", [
+    ('finetune = "fast"\n[[stages]]\nname = "a"', "finetune must be a [finetune] table"),
+    ("datasets = [1]\n[[stages]]\nname = \"a\"", "datasets must be [datasets.NAME] tables"),
+    ("datasets = { d = 1 }\n[[stages]]\nname = \"a\"", "datasets must be [datasets.NAME] tables"),
+    ("[stages]\nname = \"a\"", "stages must be [[stages]] tables"),
+])
+def test_recipe_tables_of_the_wrong_kind_are_one_line_errors(text: str, message: str) -> None:
     with pytest.raises(ConfigError) as exc:
         _parse(text)
     assert message in str(exc.value) and "\n" not in str(exc.value)
@@ -211,6 +228,14 @@ def test_tiny_recipe_end_to_end_with_a_kill_and_a_fine_tune(tmp_path: Path,
     other = parse_recipe(TINY.replace("lr = 5e-4", "lr = 4e-4"), tmp_path / "tiny.toml")
     with pytest.raises(ConfigError, match="holds a run of recipe 'tiny'"):
         run_recipe(other, run, log=lambda line: None)
+    with pytest.raises(ConfigError, match="holds a run with --data not given, not "):
+        run_recipe(recipe, dataclasses.replace(run, data=(str(data / "tiny16"),)), log=lambda line: None)
+    done = out / "second" / "done.json"
+    kept = done.read_text()
+    done.write_text("{")
+    with pytest.raises(ConfigError, match="done.json: cannot read .*delete it to train the stage again"):
+        run_recipe(recipe, dataclasses.replace(run, minutes=None), log=lambda line: None)
+    done.write_text(kept)
 
     limited = tmp_path / "limited"  # a fine-tune stopped by its budget still leaves its model so far
     assert main(["--recipe", str(tmp_path / "tiny.toml"), "--out", str(limited), "--data", str(data / "tiny16"),
@@ -222,6 +247,9 @@ def test_tiny_recipe_end_to_end_with_a_kill_and_a_fine_tune(tmp_path: Path,
     assert main(["--recipe", str(tmp_path / "tiny.toml"), "--out", str(tuned), "--data", str(data / "tiny16"),
                  "--init-from", str(result.model), "--no-progress"]) == 0
     assert "recipe tiny done: " in capsys.readouterr().out
+    assert main(["--recipe", str(tmp_path / "tiny.toml"), "--out", str(tuned), "--data", str(data / "tiny16"),
+                 "--init-from", str(out / "first" / "best.ckpt"), "--no-progress"]) == 1
+    assert "holds a run with --init-from " in capsys.readouterr().err
     config = read_checkpoint(tuned / "tiny-finetuned.ckpt").header["train_config"]
     assert config["init_from"] == str(result.model) and config["lr"] == 2e-4 and config["steps"] == 2
     assert main(["--recipe", "smoke", "--out", str(tmp_path / "t2"), "--data", str(data / "tiny16"),

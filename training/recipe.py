@@ -34,6 +34,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import re
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -57,6 +58,7 @@ _RUNNER_FIELDS = {"data", "extra_data", "out", "init_from", "model", "patch"}
 _STAGE_KEYS = {"name", "data", "init_from", "preset", "model", "patch", "detail_crops", "measured"}
 _DATASET_KEYS = {"families", "scenes", "res", "spp", "ref_spp", "seed", "variance", "val_fraction", "aovs",
                  "pixel_filter"}
+FINETUNE = "finetune"  # the one stage of a fine-tune (--init-from): no recipe stage takes the name
 _INFORMATION = {"description", "measured", "finetune"}  # left out of the recipe's hash
 
 
@@ -81,7 +83,13 @@ class DatasetSpec:
         if missing:
             raise ConfigError(f"{where}: dataset {name!r} needs {', '.join(missing)}")
         families = table.get("families", "default")
-        families = tuple(DEFAULT_FAMILIES) if families == "default" else tuple(families)
+        if families == "default":
+            families = tuple(DEFAULT_FAMILIES)
+        elif isinstance(families, list) and all(isinstance(f, str) for f in families):
+            families = tuple(families)
+        else:
+            raise ConfigError(f"{where}: dataset {name!r}: families must be \"default\" or a list of names, "
+                              f"got {families!r}")
         bad = [f for f in families if f not in FAMILIES]
         if bad:
             raise ConfigError(f"{where}: dataset {name!r}: unknown family {bad[0]!r} (known: {', '.join(FAMILIES)})")
@@ -192,6 +200,9 @@ def _stage(table: dict[str, Any], index: int, datasets: dict[str, DatasetSpec], 
            where: str) -> Stage:
     name = table.get("name", f"stage{index + 1}")
     label = f"{where}: stage {name!r}"
+    if not isinstance(name, str) or not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_.-]*", name) or name == FINETUNE:
+        raise ConfigError(f"{label}: a stage's name is a folder name of letters, digits, '_', '.', '-' "
+                          f"(not {FINETUNE!r}, the name of a fine-tune)")
     fields = {f.name for f in dataclasses.fields(TrainConfig)}
     unknown = sorted(set(table) - _STAGE_KEYS - (fields - _RUNNER_FIELDS))
     if unknown:
@@ -228,6 +239,13 @@ def parse_recipe(text: str, path: Path) -> Recipe:
     if unknown:
         raise ConfigError(f"{path}: unknown key(s) {', '.join(unknown)} (known: {', '.join(sorted(known))})")
     name = table.get("name") or path.stem
+    for key, kind, written in (("datasets", dict, "[datasets.NAME] tables"), ("stages", list, "[[stages]] tables"),
+                               ("finetune", dict, "a [finetune] table")):
+        value = table.get(key)
+        entries = value.values() if isinstance(value, dict) and key == "datasets" else \
+            value if isinstance(value, list) else ()
+        if value is not None and (not isinstance(value, kind) or not all(isinstance(e, dict) for e in entries)):
+            raise ConfigError(f"{path}: {key} must be {written}")
     datasets = {n: DatasetSpec.from_table(n, t, str(path)) for n, t in (table.get("datasets") or {}).items()}
     stages: list[Stage] = []
     for i, entry in enumerate(table.get("stages") or []):

@@ -35,12 +35,11 @@ from imaging.errors import ConfigError, DatasetError
 from model.checkpoint import read_checkpoint, strip_optimizer
 from model.config import ModelConfig
 from training.dataset import read_manifest
-from training.recipe import DatasetSpec, Recipe, Stage
+from training.recipe import FINETUNE, DatasetSpec, Recipe, Stage
 from training.train import resume_config, train
 from training.train_config import RESUMABLE_OVERRIDES, TrainConfig
 
 DONE = "done.json"
-FINETUNE = "finetune"
 Log = Callable[[str], None]
 
 
@@ -155,22 +154,32 @@ def _check_scenes(folder: Path, spec: DatasetSpec) -> None:
                            "(use another --data-root)")
 
 
-def _check_recipe(out: Path, recipe: Recipe) -> None:
-    """``out`` holds nothing, or a run of this very recipe (its sha256): never a mix."""
-    path = out / "recipe.json"
+def _check_recipe(run: RecipeRun, recipe: Recipe) -> None:
+    """``run.out`` holds nothing, or a run of this very recipe (its sha256) on the same data from the
+    same warm start (``--data``, ``--init-from``): never a mix."""
+    out, path = run.out, run.out / "recipe.json"
+    inputs = {"data": [str(Path(d).resolve()) for d in run.data],
+              "init_from": str(Path(run.init_from).resolve()) if run.init_from else None}
     if path.exists():
         try:
             saved = json.loads(path.read_text(encoding="utf-8"))
         except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
             raise ConfigError(f"{path}: cannot read ({exc})") from None
+        if not isinstance(saved, dict):
+            raise ConfigError(f"{path}: not a run's record (a JSON object); use another --out")
         if saved.get("sha256") != recipe.sha256:
             raise ConfigError(f"{out} holds a run of recipe {saved.get('name')!r} (sha256 "
                               f"{str(saved.get('sha256'))[:12]}), not of {recipe.name} ({recipe.sha256[:12]}); "
                               "use another --out")
+        for key, flag in (("data", "--data"), ("init_from", "--init-from")):
+            was = saved.get(key, [] if key == "data" else None)
+            if was != inputs[key]:
+                raise ConfigError(f"{out} holds a run with {flag} {was or 'not given'}, not "
+                                  f"{inputs[key] or 'not given'}; use another --out")
         return
     out.mkdir(parents=True, exist_ok=True)
     write_text_atomic(path, json.dumps({"name": recipe.name, "sha256": recipe.sha256, "source": str(recipe.path),
-                                        "text": recipe.path.read_text(encoding="utf-8")}, indent=1) + "\n")
+                                        **inputs, "text": recipe.path.read_text(encoding="utf-8")}, indent=1) + "\n")
 
 
 def _resumed_config(folder: Path, wanted: TrainConfig) -> TrainConfig:
@@ -193,7 +202,13 @@ def run_stage(recipe: Recipe, stage: Stage, run: RecipeRun, progress: ProgressFa
     folder = run.out / stage.name
     done = folder / DONE
     if done.exists():
-        return json.loads(done.read_text(encoding="utf-8"))
+        try:
+            record = json.loads(done.read_text(encoding="utf-8"))
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise ConfigError(f"{done}: cannot read ({exc}); delete it to train the stage again") from None
+        if not isinstance(record, dict):
+            raise ConfigError(f"{done}: not a stage's record (a JSON object); delete it to train the stage again")
+        return record
     wanted = stage.train_config(folder, stage_data(recipe, stage, run), stage_init(recipe, stage, run), run.control)
     resume = (folder / "last.ckpt").exists()
     config = _resumed_config(folder, wanted) if resume else wanted
@@ -229,7 +244,7 @@ def run_recipe(recipe: Recipe, run: RecipeRun, progress: ProgressFactory | None 
 
     start = time.monotonic()
     stages = stages_to_run(recipe, run)
-    _check_recipe(run.out, recipe)
+    _check_recipe(run, recipe)
     if not run.data:
         render_datasets(recipe, stages, run, data_progress, log)
     finished: dict[str, dict[str, Any]] = {}
