@@ -41,10 +41,10 @@ from imaging.atomic_io import write_json_atomic
 from training.run_log import RunLog, validation_curve
 
 RESULTS = Path(__file__).resolve().parent / "results"
-# the recorded runs' schedule: the step schedule (train's default is now a cosine over the run)
+# the recorded runs' schedule: a step schedule (train's default is a cosine over the run)
 UNET = ["--preset", "unet-m", "--patch", "128", "--batch", "8", "--lr", "1e-3", "--lr-warmup", "100",
         "--lr-cosine-steps", "0"]
-NOISE = ["--noise-input", "--noise-radius", "2"]  # the unet- presets were made RGB-only after this table
+NOISE = ["--noise-input", "--noise-radius", "2"]  # the recorded runs fed the noise; the unet- presets do not
 FLAT = ["--patch", "32", "--batch", "64", "--lr", "1e-3", "--lr-warmup", "0", "--lr-cosine-steps", "0"]
 RUNS: dict[str, list[str]] = {
     "flat_paper": ["--preset", "paper", *FLAT, "--val-every", "40"],

@@ -3,7 +3,8 @@
 The chain itself (sanitise, transfer, exact tiling under a memory bound, inverse) is
 :func:`denoise.chain.denoise_image`; this object counts the invalid input values it replaced, picks
 the tile size from the memory budget and converts between array kinds. Mirrors ``mi.OptixDenoiser``'s call shape (``denoiser(noisy, albedo=...,
-normals=...)`` returns the same kind of object it was given) but runs on the CPU with our model.
+normals=...)`` returns the same kind of object it was given) but runs our networks (on the CPU unless
+``device`` says otherwise).
 """
 from __future__ import annotations
 
@@ -185,7 +186,7 @@ def count_invalid(rgb: np.ndarray, rows: int | None = None, workers: int = 1) ->
 
 
 class Denoiser:
-    """The shipped models, or any checkpoint, ready to denoise HxWx3 linear radiance on the CPU.
+    """The shipped models, or any checkpoint, ready to denoise HxWx3 linear radiance (on ``device``, the CPU by default).
 
     ``model``: a registry name (``fast``, ``balanced``, ``high``, ``auto``: :mod:`model.registry`;
     None: the registry's default), a checkpoint file written by ``train``, or an expert spec

@@ -30,7 +30,7 @@ def output_format(path: str | Path) -> str:
     suffix = Path(path).suffix.lower()
     if suffix not in IMAGE_OUTPUTS:
         raise OutputPathError(f"{path}: cannot write {repr(suffix) if suffix else 'a file without an extension'}: "
-                              "an output image's name must end in .exr, .pfm, .hdr or .png")
+                              "an output image's name must end in .exr, .pfm, .hdr (.rgbe, .pic) or .png")
     return IMAGE_OUTPUTS[suffix]
 
 
@@ -40,7 +40,10 @@ def _same_file(output: Path, source: Path) -> str | None:
         if not os.path.samefile(output, source):
             return None
     except OSError:  # one of them does not exist (or cannot be looked at): compare the paths
-        return "is" if output.resolve() == source.resolve() else None
+        try:
+            return "is" if output.resolve() == source.resolve() else None
+        except (OSError, RuntimeError):  # a symbolic link loop (RuntimeError before Python 3.13)
+            raise OutputPathError(f"{output}: a symbolic link loop, or a path that cannot be resolved") from None
     if output.absolute() == source.absolute():
         return "is"
     if output.is_symlink():

@@ -125,7 +125,7 @@ def render_parser() -> OneLineParser:
     compare.add_argument("--no-compare", action="store_true", help="do not run OIDN")
     p.add_argument("--out", help="output folder (default: the scene's name)")
     p.add_argument("--time-budget", type=positive_float, metavar="SECONDS",
-                   help="choose spp (and, with --model auto, the preset) to finish within SECONDS")
+                   help="choose spp (and, with --model auto, the model) to finish within SECONDS")
     p.add_argument("--curves", metavar="TRADEOFF_JSON",
                    help="trade curves (a tradeoff run's tradeoff.json) for --model auto")
     p.add_argument("--json", action="store_true", help="print the run's record (metrics.json) instead of the table")

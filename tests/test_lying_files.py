@@ -177,7 +177,7 @@ def test_outputs_are_the_format_their_name_says(lies: Path, work: Path, capfd: p
         assert png.mode == "RGB" and np.array_equal(np.asarray(png), to_display(denoised))
     for name in ("out.jpg", "out.tiff", "out"):
         one_line(capfd, _denoise(lies, str(work / "in.exr"), str(work / name)), f"{name}: cannot write",
-                 "must end in .exr, .pfm, .hdr or .png")
+                 "must end in .exr, .pfm, .hdr (.rgbe, .pic) or .png")
         assert not (work / name).exists()
 
 

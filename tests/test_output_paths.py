@@ -20,7 +20,7 @@ def test_output_formats_by_extension(name: str, fmt: str) -> None:
                                          ("a.exr.bak", "'.bak'")])
 def test_other_extensions_are_refused(name: str, shown: str) -> None:
     with pytest.raises(OutputPathError, match=f"{name}: cannot write {shown}: an output image's name must end in "
-                                              r"\.exr, \.pfm, \.hdr or \.png"):
+                                              r"\.exr, \.pfm, \.hdr \(\.rgbe, \.pic\) or \.png"):
         output_format(name)
 
 
@@ -61,3 +61,10 @@ def test_other_files_and_missing_ones_pass(tmp_path: Path, source: Path) -> None
                      [source, tmp_path / "missing.exr", None])
     with pytest.raises(OutputPathError, match="new.exr: is the input"):  # neither exists: the paths decide
         check_not_inputs([tmp_path / "new.exr"], [tmp_path / "sub" / ".." / "new.exr"])
+
+
+def test_a_symbolic_link_loop_is_one_line(tmp_path: Path, source: Path) -> None:
+    (tmp_path / "a.exr").symlink_to(tmp_path / "b.exr")
+    (tmp_path / "b.exr").symlink_to(tmp_path / "a.exr")
+    with pytest.raises(OutputPathError, match=r"a.exr: a symbolic link loop"):
+        check_not_inputs([tmp_path / "a.exr"], [source])

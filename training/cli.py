@@ -115,7 +115,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-noise-input", dest="noise_input", action="store_const", const=False,
                    help="do not feed the render's noise (overrides the preset)")
     p.add_argument("--noise-radius", type=int,
-                   help="average the variance over a (2r+1)^2 window before the network (the u- presets: 2)")
+                   help="average the variance over a (2r+1)^2 window before the network (default 0: per pixel)")
     p.add_argument("--noise-dropout", type=float,
                    help="share of patches whose noise channels are hidden (default 0.25)")
     p.add_argument("--transfer", choices=["log", "pu"])
@@ -129,7 +129,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--lr", type=float, help=f"Adam base learning rate (default {d.lr:g})")
     p.add_argument("--grad-clip", type=float, help="clip the gradient L2 norm to this (default off)")
     p.add_argument("--init-from", metavar="CKPT",
-                   help="start from this checkpoint's weights (a file, or a shipped model's name): the same model "
+                   help="start from this checkpoint's weights (a file, or a registry checkpoint's name such as "
+                        "unet-m-k5-lowspp; not an entry like high): the same model "
                         "(a warm start), or a densenet of other depth (deepened to the model's layers, or its "
                         "first layers); with --recipe and --data: fine-tune it on that data")
     p.add_argument("--converged-pairs", action="store_const", const=True,
