@@ -127,7 +127,8 @@ def _image(h: int = 6, w: int = 8) -> np.ndarray:
 def _exr_seed(path: Path) -> Seed:
     from imaging.exr_header import read_exr_header
 
-    return Seed(path.name, path.read_bytes(), read_exr_header(path).tables_end + 16)
+    end = read_exr_header(path).tables_end  # None (a compression the header check cannot size): the whole file
+    return Seed(path.name, path.read_bytes(), 0 if end is None else end + 16)
 
 
 def exr_seeds(folder: Path) -> list[Seed]:

@@ -87,12 +87,13 @@ class ExrPartHeader:
 
 @dataclass(frozen=True)
 class ExrHeader:
-    """The headers of a whole file and where its chunk tables end (where its chunks begin)."""
+    """The headers of a whole file and where its chunk tables end (where its chunks begin; None
+    where a part's compression is one this module does not know, so its table's length is unknown)."""
 
     path: str
     parts: tuple[ExrPartHeader, ...]
     file_size: int
-    tables_end: int
+    tables_end: int | None
 
     @property
     def pixel_bytes(self) -> int:
@@ -234,15 +235,16 @@ def _part(attributes: dict[str, tuple[str, bytes]], r: _Reader, tiled_flag: bool
                          _channels(value("channels", "chlist"), r), tiles, chunk_count)
 
 
-def _check_tables(parts: list[ExrPartHeader], r: _Reader, size: int) -> int:
+def _check_tables(parts: list[ExrPartHeader], r: _Reader, size: int) -> int | None:
     """Check each part's chunk table (count, place, offsets between the tables' end and the file's
-    end); return where the tables end."""
+    end); return where the tables end (None: a part's table has a length this module cannot tell,
+    from a compression it does not know; OpenEXR checks it)."""
     tables = []
     for index, part in enumerate(parts):
         expected = part.expected_chunks()
         count = part.chunk_count if part.chunk_count is not None else expected
-        if count is None:
-            return r.pos  # a compression this module does not know: OpenEXR checks the rest
+        if count is None:  # no chunkCount (a single part) and a compression this module does not know
+            return None
         if count < 1 or (expected is not None and count != expected):
             raise r.fail(f"part {index} has {count} chunks, its header implies {expected}")
         tables.append(np.frombuffer(r.take(8 * count, f"the chunk table of part {index}"), dtype="<u8"))

@@ -185,3 +185,16 @@ def test_whole_reads_beyond_the_budget_are_refused_blocks_are_not(tmp_path: Path
     with pytest.raises(ExrError, match=r"t.exr: a tiled EXR is read whole: its pixels need 14,400 bytes, more "
                                        r"than the memory budget of 14,399 bytes"):
         read_exr(tmp_path / "t.exr", max_bytes=40 * 30 * 12 - 1)
+
+
+def test_a_compression_this_module_does_not_know_leaves_the_tables_to_openexr(tmp_path: Path, small: bytes) -> None:
+    """A single part whose compression is not one this module knows: the header parses and the
+    table's end is unknown (None); OpenEXR decides the rest: the image (OpenEXR 3.5 reads the ZIP
+    chunks) or a one-line error."""
+    (tmp_path / "odd.exr").write_bytes(_patch_attribute(small, "compression", bytes([42])))
+    header = read_exr_header(tmp_path / "odd.exr")
+    assert header.parts[0].compression == 42 and header.tables_end is None
+    try:
+        assert read_exr(tmp_path / "odd.exr").rgb.shape == (8, 8, 3)
+    except ExrError as exc:
+        assert "odd.exr" in str(exc) and "\n" not in str(exc)
