@@ -167,6 +167,14 @@ def member_precision(own: str | None, asked: str) -> str:
     return own
 
 
+def _float_array(image: Any) -> np.ndarray:
+    """A float32 copy of an array, a torch tensor (any device, with or without a gradient), a
+    ``mi.TensorXf`` or a ``mi.Bitmap``."""
+    if type(image).__module__.split(".")[0] == "torch":
+        image = image.detach().cpu().numpy()
+    return np.array(image, dtype=np.float32)
+
+
 COUNT_BYTES_PER_PIXEL = 4  # count_invalid: one boolean mask of a row block's 3 channels at a time
 
 
@@ -279,7 +287,7 @@ class Denoiser:
     @property
     def registered(self) -> bool:
         """True for a registry name (an entry or ``auto``), False for a file or an expert spec."""
-        return self.selection.auto or self.selection.name in registry().entries
+        return self.selection.entry
 
     @property
     def label(self) -> str:
@@ -482,10 +490,10 @@ class Denoiser:
         object. What the caller should know (an unknown spp: what ran instead; filtered noise) is
         given as a :class:`UserWarning`."""
         kind = type(noisy).__module__.split(".")[0]
-        data = np.array(noisy.detach().cpu().numpy() if kind == "torch" else noisy, dtype=np.float32)
+        data = _float_array(noisy)
         if data.ndim != 3 or data.shape[2] not in (3, 4):
             raise DenoiserError(f"expected HxWx3 or HxWx4 input, got shape {data.shape}")
-        aux = [None if a is None else np.array(a, dtype=np.float32)[..., :3] for a in (albedo, normals)]
+        aux = [None if a is None else _float_array(a)[..., :3] for a in (albedo, normals)]
         result = self.denoise_array(data[..., :3], *aux, spp=spp)
         for note in result.notes:
             warnings.warn(note, stacklevel=2)

@@ -157,6 +157,7 @@ class Selection:
     name: str
     choices: tuple[Choice, ...]
     auto: bool = False
+    entry: bool = False  # a registry entry (or ``auto``), not a file or an expert spec of the same name
 
     @property
     def members(self) -> list[Member]:
@@ -312,9 +313,9 @@ class Registry:
         if not text:
             raise RegistryError(f"empty model name (registry names: {', '.join(self.names)})")
         if text == AUTO:
-            return Selection(AUTO, tuple(self.entry_choice(n) for n in self.entries), auto=True)
+            return Selection(AUTO, tuple(self.entry_choice(n) for n in self.entries), auto=True, entry=True)
         if text in self.entries:
-            return Selection(text, (self.entry_choice(text),))
+            return Selection(text, (self.entry_choice(text),), entry=True)
         if Path(text).is_file():
             return Selection(text, (Choice(text, (Member(Path(text), given=text),)),))
         members = self.spec_members(text)

@@ -168,6 +168,9 @@ def test_aov_model_needs_aovs(tmp_path: Path) -> None:
         den.denoise_array(img, np.zeros((8, 8, 3)), np.zeros((16, 16, 3)))
     out = den.denoise_array(img, np.full_like(img, 0.5), np.zeros_like(img)).image
     assert out.shape == img.shape and np.isfinite(out).all()
+    albedo = torch.full(img.shape, 0.5, requires_grad=True)  # tensors that need a gradient, as a caller's may
+    called = den(torch.from_numpy(img).requires_grad_(), albedo=albedo, normals=torch.zeros(img.shape))
+    np.testing.assert_allclose(called.numpy(), out, rtol=1e-6)
 
 
 @pytest.mark.parametrize("shape", [(1, 1), (1, 37), (29, 1), (17, 33)])
@@ -202,6 +205,8 @@ def test_the_denoiser_names_what_it_runs_so_that_the_name_loads_it_again(ckpt: P
         den = Denoiser(model)
         assert den.name == model and Denoiser(den.name).sha256 == den.sha256
     assert Denoiser().name == "high"  # the registry's default
+    listed = Denoiser(["fast"])  # a list names checkpoints: the one `fast` named before the registry
+    assert not listed.registered and listed.label == "flat-s-allspp" and Denoiser("fast").registered
     with pytest.raises(DenoiserError, match="registry name"):
         Denoiser("fsat")
 
