@@ -29,20 +29,24 @@ from training.validate import Validator
 from model.registry import registry, split_member
 
 
-def val_images(folders: list[Path], max_scenes: int | None, noise: bool) -> list[ValImage]:
-    """The ``val`` scenes of every folder (index below ``max_scenes``), scene ids offset per folder
-    as in training. Raises :class:`DatasetError` when there are none."""
+def val_images(folders: list[Path], max_scenes: int | None, noise: bool,
+               min_ceiling_db: float | None = None) -> list[ValImage]:
+    """The ``val`` scenes of every folder (index below ``max_scenes``; with ``min_ceiling_db``, only
+    those whose reference's noise ceiling is at least that), scene ids offset per folder as in
+    training. Raises :class:`DatasetError` when there are none."""
     images: list[ValImage] = []
     for k, root in enumerate(folders):
-        records = [r for r in read_manifest(root) if r.split == "val" and (not max_scenes or r.index < max_scenes)]
+        records = [r for r in read_manifest(root) if r.split == "val" and (not max_scenes or r.index < max_scenes)
+                   and (min_ceiling_db is None or (r.ref_ceiling_db or 0.0) >= min_ceiling_db)]
         images += load_val_images(root, records, aux=False, noise=noise, index_offset=k * DATASET_ID_STRIDE)
     if not images:
-        raise DatasetError(f"no 'val' scenes in {', '.join(map(str, folders))}")
+        clean = f" whose reference's noise ceiling is at least {min_ceiling_db:g} dB" if min_ceiling_db else ""
+        raise DatasetError(f"no 'val' scenes{clean} in {', '.join(map(str, folders))}")
     return images
 
 
 def score(models: dict[str, Path], folders: list[Path], max_scenes: int | None,
-          oidn: bool = True) -> dict[str, Any]:
+          oidn: bool = True, min_ceiling_db: float | None = None) -> dict[str, Any]:
     """Every model's :meth:`Validator.run` result on the same images, with the noisy input's and
     OIDN's (``baselines``: per spp, from the first model's run). Raises ValueError for a model
     with albedo/normal inputs (the validation sets here are colour only)."""
@@ -50,7 +54,8 @@ def score(models: dict[str, Path], folders: list[Path], max_scenes: int | None,
     aux = [name for name, (_, config, _) in loaded.items() if config.aux_inputs]
     if aux:
         raise ValueError(f"{', '.join(aux)}: models with albedo/normal inputs are not scored here")
-    images = val_images(folders, max_scenes, noise=any(c.noise_input for _, c, _ in loaded.values()))
+    images = val_images(folders, max_scenes, noise=any(c.noise_input for _, c, _ in loaded.values()),
+                        min_ceiling_db=min_ceiling_db)
     validator = Validator(images, use_oidn=oidn)  # caches the noisy and OIDN scores: equal for every model
     runs = {name: validator.run(model) for name, (model, _, _) in loaded.items()}
     results = {name: {"path": str(models[name]), "config": config.to_dict(), "step": meta.get("step"),
@@ -74,7 +79,8 @@ def _db(value: float | None) -> str:
 
 def note(result: dict[str, Any]) -> str:
     """What the table's figures are."""
-    return (f"{result['images']} images of {result['scenes']} held-out scenes at {result['spp'][0]}-"
+    clean = f" (references of noise ceiling >= {result['min_ceiling_db']:g} dB)" if result.get("min_ceiling_db") else ""
+    return (f"{result['images']} images of {result['scenes']} held-out scenes{clean} at {result['spp'][0]}-"
             f"{result['spp'][-1]} spp; PSNR dB (tonemapped) of the network in float32, as the trainer validates "
             "it; OIDN 2.5 colour-only on the same images; the last columns: each model minus OIDN.")
 
@@ -122,6 +128,9 @@ def build_parser() -> OneLineParser:
                    help="comma-separated registry checkpoints, files or NAME=CHECKPOINT, each scored alone "
                         f"(default: the default entry's checkpoints, {','.join(members)})")
     p.add_argument("--max-scenes", type=positive_int, help="only scenes with index below this")
+    p.add_argument("--min-ceiling-db", type=float, metavar="DB",
+                   help="only scenes whose reference is clean enough: its noise ceiling (from its halves, "
+                        "in the manifest) at least DB")
     p.add_argument("--no-oidn", action="store_true", help="skip the OIDN baseline")
     p.add_argument("--out", type=Path, default=RESULTS)
     return p
@@ -135,11 +144,11 @@ def main(argv: list[str] | None = None) -> int:
         models = model_specs(args.models)
         record = run_record("benchmarks.validation", argv)
         start = time.perf_counter()
-        result = score(models, args.data, args.max_scenes, oidn=not args.no_oidn)
+        result = score(models, args.data, args.max_scenes, oidn=not args.no_oidn, min_ceiling_db=args.min_ceiling_db)
     except COMMAND_ERRORS as exc:
         return parser.fail(exc)
     result = {**finish_record(record, start), "data": [str(d) for d in args.data],
-              "max_scenes": args.max_scenes, **result}
+              "max_scenes": args.max_scenes, "min_ceiling_db": args.min_ceiling_db, **result}
     text = markdown(result)
     path = save_result(args.out, "validation", result, text)
     print(text, end="")

@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from benchmarks.validation import build_parser, main, model_specs, score
+from imaging.errors import DatasetError
 from model.architectures import build_model
 from model.checkpoint import save_checkpoint
 from model.config import ModelConfig
@@ -84,3 +85,17 @@ def test_the_default_models_are_the_default_entrys_checkpoints() -> None:
     specs = model_specs(build_parser().parse_args(["--data", "d"]).models)
     assert list(specs) == ["flat-s-allspp", "flat-s-lowspp", "unet-m-k5-lowspp", "unet-l-allspp", "unet-m-k5-lowspp-b"]
     assert all(path.is_file() for path in specs.values()), specs
+
+
+def test_min_ceiling_keeps_the_scenes_whose_reference_is_clean_enough(tmp_path: Path) -> None:
+    root = write_synthetic_dataset(tmp_path / "c", scenes=4, res=(32, 24), spp=(2, 8), val_scenes=(1, 3))
+    manifest = root / "manifest.jsonl"
+    ceilings = {1: 45.0, 3: 30.0}  # scene 0 and 2 are training scenes
+    lines = [json.loads(line) for line in manifest.read_text().splitlines() if line.strip()]
+    manifest.write_text("".join(json.dumps({**r, "ref_noise": {"psnr_ceiling_db": ceilings.get(r["index"], 50.0)}})
+                                + "\n" for r in lines))
+    models = {"identity": _checkpoint(tmp_path / "id.ckpt")}
+    assert score(models, [root], max_scenes=None, oidn=False, min_ceiling_db=40)["scenes"] == 1
+    assert score(models, [root], max_scenes=None, oidn=False, min_ceiling_db=30)["scenes"] == 2
+    with pytest.raises(DatasetError, match="no 'val' scenes whose reference's noise ceiling is at least 46 dB"):
+        score(models, [root], max_scenes=None, oidn=False, min_ceiling_db=46)

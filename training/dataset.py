@@ -36,14 +36,16 @@ CONVERGED_SPP = 0  # TrainingPair.spp of a pair whose input is the reference its
 
 @dataclass(frozen=True)
 class SceneRecord:
-    """One manifest line: scene index, split, rendered spp levels, aux buffers and the spp
-    levels that have a variance image (``generate-dataset --variance``)."""
+    """One manifest line: scene index, split, rendered spp levels, aux buffers, the spp
+    levels that have a variance image (``generate-dataset --variance``) and the PSNR ceiling its
+    reference's own noise sets (dB, from its two halves; None where not recorded)."""
 
     index: int
     split: str
     spp: tuple[int, ...]
     aovs: tuple[str, ...]
     variance_spp: tuple[int, ...] = ()
+    ref_ceiling_db: float | None = None
 
 
 @dataclass(frozen=True)
@@ -82,9 +84,12 @@ def read_dataset_config(root: Path) -> dict[str, Any]:
 def _record(line: str, path: Path, number: int) -> SceneRecord:
     try:
         obj = parse_json(line)
+        ref_noise = obj.get("ref_noise")
+        ceiling = ref_noise.get("psnr_ceiling_db") if isinstance(ref_noise, dict) else None
         record = SceneRecord(int(obj["index"]), str(obj["split"]),
                              tuple(int(s) for s in obj["spp"]), tuple(str(a) for a in obj.get("aovs", [])),
-                             tuple(int(s) for s in obj.get("variance_spp", [])))
+                             tuple(int(s) for s in obj.get("variance_spp", [])),
+                             None if ceiling is None else float(ceiling))
     except (json.JSONDecodeError, KeyError, TypeError, ValueError, OverflowError) as exc:  # int(Infinity)
         raise DatasetError(f"{path}:{number}: malformed manifest line ({exc})") from None
     if record.index < 0 or record.split not in ("train", "val"):
