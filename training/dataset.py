@@ -84,6 +84,8 @@ def read_dataset_config(root: Path) -> dict[str, Any]:
 def _record(line: str, path: Path, number: int) -> SceneRecord:
     try:
         obj = parse_json(line)
+        if not isinstance(obj, dict):
+            raise TypeError(f"a JSON object, not {type(obj).__name__}")
         ref_noise = obj.get("ref_noise")
         ceiling = ref_noise.get("psnr_ceiling_db") if isinstance(ref_noise, dict) else None
         record = SceneRecord(int(obj["index"]), str(obj["split"]),
