@@ -16,7 +16,6 @@ from denoise.chain import image_exposure
 from denoise.denoiser import Denoiser, count_invalid
 from denoise.energy import correct_in_place
 from denoise.noise_guard import blend_weight, clean_render, guard
-
 from tests.nets import randomize_batchnorm
 
 TINY = ModelConfig(layers=3, growth=4, init_features=8)
