@@ -154,6 +154,18 @@ def _check_scenes(folder: Path, spec: DatasetSpec) -> None:
                            "(use another --data-root)")
 
 
+def _read_record(path: Path, remedy: str) -> dict[str, Any]:
+    """The JSON object a run wrote at ``path``; raises :class:`ConfigError` (naming ``remedy``) for
+    a file that cannot be read or holds something else."""
+    try:
+        record = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ConfigError(f"{path}: cannot read ({exc}); {remedy}") from None
+    if not isinstance(record, dict):
+        raise ConfigError(f"{path}: not a run's record (a JSON object); {remedy}")
+    return record
+
+
 def _check_recipe(run: RecipeRun, recipe: Recipe) -> None:
     """``run.out`` holds nothing, or a run of this very recipe (its sha256) on the same data from the
     same warm start (``--data``, ``--init-from``): never a mix."""
@@ -161,12 +173,7 @@ def _check_recipe(run: RecipeRun, recipe: Recipe) -> None:
     inputs = {"data": [str(Path(d).resolve()) for d in run.data],
               "init_from": str(Path(run.init_from).resolve()) if run.init_from else None}
     if path.exists():
-        try:
-            saved = json.loads(path.read_text(encoding="utf-8"))
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-            raise ConfigError(f"{path}: cannot read ({exc})") from None
-        if not isinstance(saved, dict):
-            raise ConfigError(f"{path}: not a run's record (a JSON object); use another --out")
+        saved = _read_record(path, "use another --out")
         if saved.get("sha256") != recipe.sha256:
             raise ConfigError(f"{out} holds a run of recipe {saved.get('name')!r} (sha256 "
                               f"{str(saved.get('sha256'))[:12]}), not of {recipe.name} ({recipe.sha256[:12]}); "
@@ -202,13 +209,7 @@ def run_stage(recipe: Recipe, stage: Stage, run: RecipeRun, progress: ProgressFa
     folder = run.out / stage.name
     done = folder / DONE
     if done.exists():
-        try:
-            record = json.loads(done.read_text(encoding="utf-8"))
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-            raise ConfigError(f"{done}: cannot read ({exc}); delete it to train the stage again") from None
-        if not isinstance(record, dict):
-            raise ConfigError(f"{done}: not a stage's record (a JSON object); delete it to train the stage again")
-        return record
+        return _read_record(done, "delete it to train the stage again")
     wanted = stage.train_config(folder, stage_data(recipe, stage, run), stage_init(recipe, stage, run), run.control)
     resume = (folder / "last.ckpt").exists()
     config = _resumed_config(folder, wanted) if resume else wanted
