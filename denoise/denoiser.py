@@ -147,9 +147,7 @@ class DenoiseResult:
     @property
     def precision(self) -> str:
         """The float format of the networks that ran (``+``-joined where they differ)."""
-        if len(set(self.precisions)) <= 1:
-            return "".join(self.precisions[:1])
-        return SEPARATOR.join(self.precisions)
+        return joined_formats(self.precisions)
 
     def energy_record(self) -> dict[str, float] | None:
         """The energy correction's entry of metrics.json and of ``denoise``'s report (None: off)."""
@@ -165,6 +163,11 @@ def member_precision(own: str | None, asked: str) -> str:
     if asked != "auto" or not own or (own == "bfloat16" and not native_bfloat16()):
         return asked
     return own
+
+
+def joined_formats(formats: Sequence[str]) -> str:
+    """One float format where all networks share it, else each joined by ``+`` ("" for none)."""
+    return "".join(formats[:1]) if len(set(formats)) <= 1 else SEPARATOR.join(formats)
 
 
 def _float_array(image: Any) -> np.ndarray:
@@ -194,7 +197,8 @@ def count_invalid(rgb: np.ndarray, rows: int | None = None, workers: int = 1) ->
 
 
 class Denoiser:
-    """The shipped models, or any checkpoint, ready to denoise HxWx3 linear radiance (on ``device``, the CPU by default).
+    """The shipped models, or any checkpoint, ready to denoise HxWx3 linear radiance (on ``device``,
+    the CPU by default).
 
     ``model``: a registry name (``fast``, ``balanced``, ``high``, ``auto``: :mod:`model.registry`;
     None: the registry's default), a checkpoint file written by ``train``, or an expert spec
@@ -235,7 +239,7 @@ class Denoiser:
         import torch
 
         from denoise.flips import check_flips
-        from denoise.precision import PRECISIONS, check_precision
+        from denoise.precision import check_precision
         from model.device import choose_device
 
         try:
@@ -246,9 +250,11 @@ class Denoiser:
         if not 0 < max_memory_mb < float("inf"):  # also refuses NaN
             raise DenoiserError(f"max memory must be positive and finite, got {max_memory_mb} MB")
         self.selection = select(model)  # every member's file known before any load
-        for member in self.selection.members:  # NAME@FORMAT: a format this module knows
-            if member.precision is not None and member.precision not in PRECISIONS:
-                raise DenoiserError(f"{member.spec}: precision must be one of {', '.join(PRECISIONS)}")
+        for member in self.selection.members:  # NAME@FORMAT: a format this module knows, before any load
+            try:
+                check_precision(member.precision or "auto")
+            except ValueError as exc:
+                raise DenoiserError(f"{member.spec}: {exc}") from None
         if threads:
             torch.set_num_threads(int(threads))
         fix_mmap_threshold()
@@ -301,8 +307,7 @@ class Denoiser:
     def precision(self) -> str:
         """The float format the network computes in: ``float32`` or ``bfloat16`` (an ensemble's
         members' joined by ``+`` where they differ)."""
-        names = [m.precision for m in self.members]
-        return names[0] if len(set(names)) == 1 else SEPARATOR.join(names)
+        return joined_formats([m.precision for m in self.members])
 
     @property
     def sha256(self) -> str:

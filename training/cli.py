@@ -285,10 +285,10 @@ def _resume_hint(parser: argparse.ArgumentParser, args: argparse.Namespace, rank
     return resume_command(parser, args, launcher="torchrun <the same torchrun options> -m training.cli")
 
 
-def recipe_run_from_args(args: argparse.Namespace) -> RecipeRun:
-    """The :class:`RecipeRun` of a ``--recipe`` command; raises :class:`ConfigError` for a flag the
-    recipe sets (any value other than the parser's default: ``--seed 0`` and ``--no-oidn`` count)."""
-    parser = build_parser()
+def recipe_run_from_args(parser: argparse.ArgumentParser, args: argparse.Namespace) -> RecipeRun:
+    """The :class:`RecipeRun` of a ``--recipe`` command parsed by ``parser``; raises
+    :class:`ConfigError` for a flag the recipe sets (any value other than the parser's default:
+    ``--seed 0`` and ``--no-oidn`` count)."""
     flag = {a.dest: a.option_strings[0] for a in parser._actions if a.option_strings}
     given = sorted(flag.get(dest, f"--{dest.replace('_', '-')}") for dest, value in vars(args).items()
                    if dest not in _RECIPE_FLAGS and value != parser.get_default(dest))
@@ -312,7 +312,7 @@ def recipe_main(parser: OneLineParser, args: argparse.Namespace) -> int:
     """``train --recipe``: run it (or print its plan with ``--dry-run``)."""
     try:
         recipe = load_recipe(args.recipe)
-        run = recipe_run_from_args(args)
+        run = recipe_run_from_args(parser, args)
         if args.dry_run:
             print("\n".join(plan(recipe, run)))
             return 0

@@ -239,26 +239,26 @@ def parse_recipe(text: str, path: Path) -> Recipe:
     if unknown:
         raise ConfigError(f"{path}: unknown key(s) {', '.join(unknown)} (known: {', '.join(sorted(known))})")
     name = table.get("name") or path.stem
-    for key, kind, written in (("datasets", dict, "[datasets.NAME] tables"), ("stages", list, "[[stages]] tables"),
-                               ("finetune", dict, "a [finetune] table")):
-        value = table.get(key)
-        entries = value.values() if isinstance(value, dict) and key == "datasets" else \
-            value if isinstance(value, list) else ()
-        if value is not None and (not isinstance(value, kind) or not all(isinstance(e, dict) for e in entries)):
-            raise ConfigError(f"{path}: {key} must be {written}")
-    datasets = {n: DatasetSpec.from_table(n, t, str(path)) for n, t in (table.get("datasets") or {}).items()}
+    dataset_tables, stage_tables = table.get("datasets", {}), table.get("stages", [])
+    finetune = table.get("finetune", {})
+    if not isinstance(dataset_tables, dict) or not all(isinstance(t, dict) for t in dataset_tables.values()):
+        raise ConfigError(f"{path}: datasets must be [datasets.NAME] tables")
+    if not isinstance(stage_tables, list) or not all(isinstance(t, dict) for t in stage_tables):
+        raise ConfigError(f"{path}: stages must be [[stages]] tables")
+    if not isinstance(finetune, dict):
+        raise ConfigError(f"{path}: finetune must be a [finetune] table")
+    datasets = {n: DatasetSpec.from_table(n, t, str(path)) for n, t in dataset_tables.items()}
     stages: list[Stage] = []
-    for i, entry in enumerate(table.get("stages") or []):
+    for i, entry in enumerate(stage_tables):
         stages.append(_stage(entry, i, datasets, [s.name for s in stages], str(path)))
     if not stages:
         raise ConfigError(f"{path}: a recipe needs at least one [[stages]] entry")
     if len({s.name for s in stages}) != len(stages):
         raise ConfigError(f"{path}: stage names must differ")
-    finetune = dict(table.get("finetune") or {})
     bad = sorted(set(finetune) - ({f.name for f in dataclasses.fields(TrainConfig)} - _RUNNER_FIELDS))
     if bad:
         raise ConfigError(f"{path}: [finetune] takes TrainConfig fields, not {', '.join(bad)}")
-    return Recipe(name, str(table.get("description", "")).strip(), datasets, tuple(stages), finetune,
+    return Recipe(name, str(table.get("description", "")).strip(), datasets, tuple(stages), dict(finetune),
                   canonical_hash(table), path)
 
 
