@@ -232,9 +232,10 @@ def test_tiny_recipe_end_to_end_with_a_kill_and_a_fine_tune(tmp_path: Path,
         run_recipe(recipe, dataclasses.replace(run, data=(str(data / "tiny16"),)), log=lambda line: None)
     done = out / "second" / "done.json"
     kept = done.read_text()
-    done.write_text("{")
-    with pytest.raises(ConfigError, match="done.json: cannot read .*delete it to train the stage again"):
-        run_recipe(recipe, dataclasses.replace(run, minutes=None), log=lambda line: None)
+    for broken in ("{", "[" * 100_000):  # malformed, and nested past Python's recursion limit
+        done.write_text(broken)
+        with pytest.raises(ConfigError, match="done.json: cannot read .*delete it to train the stage again"):
+            run_recipe(recipe, dataclasses.replace(run, minutes=None), log=lambda line: None)
     done.write_text(kept)
 
     limited = tmp_path / "limited"  # a fine-tune stopped by its budget still leaves its model so far

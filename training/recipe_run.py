@@ -32,6 +32,7 @@ from console.progress import ProgressFactory
 from dataset_gen.generate import generate_dataset
 from imaging.atomic_io import write_text_atomic
 from imaging.errors import ConfigError, DatasetError
+from imaging.json_read import parse_json
 from model.checkpoint import read_checkpoint, strip_optimizer
 from model.config import ModelConfig
 from training.dataset import read_manifest
@@ -158,7 +159,7 @@ def _read_record(path: Path, remedy: str) -> dict[str, Any]:
     """The JSON object a run wrote at ``path``; raises :class:`ConfigError` (naming ``remedy``) for
     a file that cannot be read or holds something else."""
     try:
-        record = json.loads(path.read_text(encoding="utf-8"))
+        record = parse_json(path.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise ConfigError(f"{path}: cannot read ({exc}); {remedy}") from None
     if not isinstance(record, dict):
