@@ -23,7 +23,10 @@ What changes against the training module (eval mode), and why it is exact up to 
   every page faults on first touch. With the one-sided clamp of :class:`_ClampConv1x1`, measured
   on 2 cores: u-fast's network alone at 1080p in bfloat16, 1.22 -> 0.90 s (docs/experiments.md).
 * **Optionally bfloat16** (``dtype``, :mod:`denoise.precision`): weights and activations; the input
-  is built and the residual added in float32.
+  is built and the residual added in float32. In bfloat16 each bottleneck's BN-ReLU is one affine
+  pass and an in-place ReLU instead of the clamp, whose folded form rounds away small features
+  (:class:`_ClampConv1x1`); the multi-scale nets keep the clamp in bfloat16 (the affine form
+  measured no better there: unet-l-allspp 39.67 dB either way at 128 spp, 5-10% slower).
 * **The input written into one NHWC buffer** (:func:`padded_input`): RGB, its gradients and the
   other channels side by side per pixel, the layout the first conv reads, instead of a
   concatenation of NCHW planes and a reorder.
@@ -138,39 +141,57 @@ def relu_affine_as_clamp(scale: torch.Tensor, shift: torch.Tensor) -> tuple[torc
 
 
 class _ClampConv1x1(nn.Module):
-    """A BN-ReLU-Conv1x1 (-BN-ReLU) in two passes: a clamp, then a conv with bias (+ ReLU).
+    """A BN-ReLU-Conv1x1 (-BN-ReLU) in two passes: the pre-activation, then a conv with bias (+ ReLU).
 
     ``relu(s*x + t) = s*clamp(x, lo, hi) + c`` (:func:`relu_affine_as_clamp`), and a 1x1 conv has
-    no padding, so ``W @ (s*clamp(x) + c) = (W*s) @ clamp(x) + W @ c`` holds at every pixel.
+    no padding, so ``W @ (s*clamp(x) + c) = (W*s) @ clamp(x) + W @ c`` holds at every pixel: the
+    first pass is one clamp. ``affine``: the first pass is ``relu(s*x + t)`` itself (one affine map,
+    then an in-place ReLU) and the conv keeps ``W``. Both are exact in float32; in bfloat16 only the
+    affine form is precise: a clamped feature sits near ``lo = -t/s``, often far from 0, so
+    ``(W*s) @ clamp(x)`` and the bias ``W @ c`` are large terms that cancel, and the rounding of
+    ``W*s`` and ``W @ c`` to 8 bits survives the cancellation (flat-s-allspp on the eval scenes at
+    128 spp: 40.67 dB in the clamp form, 40.99 affine, 41.12 in float32; docs/experiments.md).
     ``bn2`` (the bottleneck's BN after the conv) is folded into the conv, followed by a ReLU;
     without it the conv's output is returned as it is (a transition). ``order``: the input
     channels arrive in this order of the training module's channels (a permutation).
     """
 
     def __init__(self, bn1: nn.BatchNorm2d, conv: nn.Conv2d, bn2: nn.BatchNorm2d | None = None,
-                 order: torch.Tensor | None = None) -> None:
+                 order: torch.Tensor | None = None, affine: bool = False) -> None:
         super().__init__()
-        scale, lo, hi, const = relu_affine_as_clamp(*bn_affine(bn1))
         if bn2 is not None:
             weight, bias = fold_conv_bn(conv, bn2)
         else:
             weight, bias = conv.weight.detach(), torch.zeros(conv.out_channels)
         w = weight.double()[:, :, 0, 0]
-        bias = bias.double() + w @ const.double().view(-1)
-        w = w * scale.double()
-        if order is not None:
-            w, lo, hi = w[:, order], lo[:, order], hi[:, order]
-        self.register_buffer("lo", lo.contiguous())
-        self.register_buffer("hi", hi.contiguous())
-        # trained BN scales are positive in practice (every clamp of the shipped weights): then the
-        # clamp has no upper bound and is one maximum, measured 1.6x faster than clamp in bfloat16
-        self.upper = bool(torch.isfinite(hi).any())
+        self.affine = affine
+        self.in_channels = w.shape[1]
+        if affine:
+            scale, shift = (v.view(1, -1, 1, 1) for v in bn_affine(bn1))
+            if order is not None:
+                w, scale, shift = w[:, order], scale[:, order], shift[:, order]
+            self.register_buffer("scale", scale.contiguous())
+            self.register_buffer("shift", shift.contiguous())
+            self.upper = False
+        else:
+            scale, lo, hi, const = relu_affine_as_clamp(*bn_affine(bn1))
+            bias = bias.double() + w @ const.double().view(-1)
+            w = w * scale.double()
+            if order is not None:
+                w, lo, hi = w[:, order], lo[:, order], hi[:, order]
+            self.register_buffer("lo", lo.contiguous())
+            self.register_buffer("hi", hi.contiguous())
+            # trained BN scales are positive in practice (every clamp of the shipped weights): then the
+            # clamp has no upper bound and is one maximum, measured 1.6x faster than clamp in bfloat16
+            self.upper = bool(torch.isfinite(hi).any())
         self.conv = _Conv(w.float()[:, :, None, None], bias.float(), relu=bn2 is not None)
 
     def clamp(self, x: torch.Tensor, scratch: torch.Tensor | None = None) -> torch.Tensor:
-        """The first pass alone: the input clamped per channel (into a view of the flat
-        ``scratch`` when given, :func:`scratch_view`)."""
+        """The first pass alone: the input clamped per channel, or ``relu(s*x + t)`` where
+        ``affine`` (into a view of the flat ``scratch`` when given, :func:`scratch_view`)."""
         out = None if scratch is None else scratch_view(scratch, *x.shape)
+        if self.affine:
+            return torch.addcmul(self.shift, x, self.scale, out=out).relu_()
         if self.upper:
             return torch.clamp(x, self.lo, self.hi, out=out)
         return torch.maximum(x, self.lo, out=out)
@@ -191,13 +212,14 @@ class InferenceNet(nn.Module):
             conv0, bn0, _ = model.head
             self.head = _Conv(*fold_conv_bn(conv0, bn0), relu=True)
             layers = [layer.body for layer in model.body.layers]
-            self.conv1 = nn.ModuleList(_ClampConv1x1(b[0], b[2], b[3]) for b in layers)
+            affine = dtype == torch.bfloat16  # precise in bfloat16 (_ClampConv1x1)
+            self.conv1 = nn.ModuleList(_ClampConv1x1(b[0], b[2], b[3], affine=affine) for b in layers)
             self.conv3 = nn.ModuleList(_Conv(b[5].weight.detach().clone(), None, relu=False) for b in layers)
             tail_bn, _, tail_conv = model.tail
             self.tail_pre = _AffineReLU(*bn_affine(tail_bn))
             self.tail = _Conv(tail_conv.weight.detach().clone(), None, relu=False)
         # channels of the widest clamp input (the tail's affine map included): the scratch's per pixel
-        self.clamp_width = max([c.lo.shape[1] for c in self.conv1] + [self.tail_pre.scale.shape[1]])
+        self.clamp_width = max([c.in_channels for c in self.conv1] + [self.tail_pre.scale.shape[1]])
         self.to(dtype)
         self.eval()
 

@@ -175,7 +175,7 @@ class InferenceUNet(nn.Module):
         clamps = [[*self.enc[i].conv1, *self.dec[i].conv1, self.down[i]] for i in range(n)] + [list(self.bottom.conv1)]
         for i in range(1, n + 1):
             clamps[i].append(self.up[i - 1])
-        self.clamp_widths = [max(c.lo.shape[1] for c in level) for level in clamps]
+        self.clamp_widths = [max(c.in_channels for c in level) for level in clamps]
         self.clamp_widths[0] = max(self.clamp_widths[0], self.tail_pre.scale.shape[1])
         self.to(dtype)
         self.eval()

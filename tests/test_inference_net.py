@@ -17,7 +17,7 @@ import torch
 from model.checkpoint import save_checkpoint
 from model.config import ModelConfig
 from denoise.folded import prepare_for_inference
-from denoise.inference_net import bn_affine, fold_conv_bn, relu_affine_as_clamp
+from denoise.inference_net import _ClampConv1x1, bn_affine, fold_conv_bn, relu_affine_as_clamp
 from model.architectures import build_model
 from imaging.errors import DenoiserError
 from denoise.denoiser import Denoiser
@@ -101,3 +101,29 @@ def test_denoiser_refuses_flips_for_a_model_with_aux_inputs(tmp_path: Path) -> N
     assert Denoiser(path).flips == 1
     with pytest.raises(DenoiserError, match="flips need a model without albedo/normal"):
         Denoiser(path, flips=2)
+
+
+@pytest.mark.parametrize("order", [None, torch.tensor([3, 0, 2, 1, 7, 5, 6, 4])], ids=["in-order", "permuted"])
+def test_affine_pre_activation_is_precise_in_bfloat16(order: torch.Tensor | None) -> None:
+    """Features far from 0 with a small spread (BN mean 50, std 0.1, as a dense buffer's channels
+    can be): in bfloat16 the clamp form's (W*s) @ clamp(x) and bias W @ c are terms of ~10^2 that
+    cancel to outputs of ~1, and their rounding stays; the affine form rounds relu(s*x + t) itself.
+    The inputs are exact in bfloat16 (multiples of 1/4 near 50), so only the two forms differ."""
+    torch.manual_seed(0)
+    bn1, conv, bn2 = torch.nn.BatchNorm2d(8).eval(), torch.nn.Conv2d(8, 6, 1, bias=False), torch.nn.BatchNorm2d(6).eval()
+    with torch.no_grad():
+        bn1.running_mean.fill_(50.0)
+        bn1.running_var.fill_(0.01)
+    x = (50.0 + torch.randint(-8, 9, (1, 8, 9, 7)) / 4).contiguous(memory_format=torch.channels_last)
+    with torch.no_grad():
+        want = bn2(conv(torch.relu(bn1(x)))).relu()  # x - 50 is exact in float32
+    seen = x if order is None else x[:, order]  # the channels as the folded net receives them
+    errors = {}
+    for affine in (False, True):
+        exact = _ClampConv1x1(bn1, conv, bn2, order, affine=affine)
+        half = _ClampConv1x1(bn1, conv, bn2, order, affine=affine).to(torch.bfloat16)
+        with torch.inference_mode():
+            assert float((exact(seen) - want).abs().max()) < 1e-3  # both exact in float32
+            errors[affine] = float((half(seen.bfloat16()).float() - want).abs().max())
+    # outputs of up to ~12: the affine form within bfloat16's rounding of them, the clamp form ~20x off
+    assert errors[True] < 0.1 and errors[False] > 10 * errors[True], errors
