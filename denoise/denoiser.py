@@ -215,9 +215,10 @@ class Denoiser:
     :func:`denoise.chain.tile_bytes_per_pixel`, the noise guard on tiles and row blocks
     (:func:`denoise.noise_guard.guard_in_place`). Creating a Denoiser fixes glibc's mmap
     threshold for the process (:mod:`denoise.allocator`): without it freed tile temporaries stay
-    resident and the process peaks at about twice that; it also asks torch for transparent huge
-    pages (:func:`denoise.allocator.use_huge_pages`: a fresh mapping faults per 2 MiB, not per 4 KiB;
-    it takes effect when no large torch tensor was made before). ``threads`` sets torch's CPU threads.
+    resident and the process peaks at about twice that; with ``huge_pages`` it also asks torch for
+    transparent huge pages (:func:`denoise.allocator.use_huge_pages`: a fresh mapping faults per 2 MiB,
+    not per 4 KiB, faster from the second call on, slower for the first; it takes effect when no
+    large torch tensor was made before). ``threads`` sets torch's CPU threads.
     ``optimize``: run the folded, concatenation-free copy of the model
     (:mod:`denoise.inference_net`, :mod:`denoise.inference_unet`; equal up to float32 rounding)
     instead of the training module. ``skip_below``: with a variance, leave the parts of the image
@@ -235,7 +236,8 @@ class Denoiser:
     def __init__(self, model: ModelArg = None,
                  max_memory_mb: float = DEFAULT_MAX_MEMORY_MB, threads: int | None = None,
                  optimize: bool = True, skip_below: float | None = None, precision: str = "auto",
-                 flips: int = 1, energy: EnergySettings | None = EnergySettings(), device: str = "cpu") -> None:
+                 flips: int = 1, energy: EnergySettings | None = EnergySettings(), device: str = "cpu",
+                 huge_pages: bool = True) -> None:
         import torch
 
         from denoise.flips import check_flips
@@ -258,7 +260,7 @@ class Denoiser:
         if threads:
             torch.set_num_threads(int(threads))
         fix_mmap_threshold()
-        use_huge_pages()  # before the first large tensor: the tiles' temporaries fault per 2 MiB
+        use_huge_pages(huge_pages)  # before the first large tensor: the tiles' temporaries fault per 2 MiB
         self.optimize = optimize
         self._networks = {m: Network.load(m.path, optimize, member_precision(m.precision, precision), (m.lo, m.hi),
                                           m.given)

@@ -170,9 +170,10 @@ def denoise_file(cfg: DenoiseFileConfig) -> dict[str, Any]:
     check_not_inputs([cfg.output], [*cfg.inputs, cfg.reference], cfg.overwrite)
     for path in [*cfg.inputs, *([cfg.reference] if cfg.reference else [])]:
         check_image_header(path)  # before the models load: a file that lies fails at once
+    # one image a process: huge pages would only slow its one call (denoise.allocator)
     denoiser = Denoiser(cfg.model, max_memory_mb=cfg.max_memory_mb, skip_below=cfg.skip_below,
                         precision=cfg.precision, flips=cfg.flips,
-                        energy=settings_if(cfg.energy), device=cfg.device)
+                        energy=settings_if(cfg.energy), device=cfg.device, huge_pages=False)
     blocks = min(denoiser.max_bytes, DEFAULT_BLOCK_BYTES)  # the readers' temporaries
     images = [read_input(p, cfg.layer, cfg.variance_layer, blocks) for p in cfg.inputs]
     image = images[0] if len(images) == 1 else combine_halves(*images, max_bytes=denoiser.max_bytes)

@@ -46,7 +46,7 @@ def test_fixed_threshold_returns_freed_blocks_at_once() -> None:
 _THP_CHILD = """
 import json, sys
 from denoise.allocator import use_huge_pages
-asked = use_huge_pages()
+asked = use_huge_pages(sys.argv[1] == "on")
 import torch
 block = torch.ones(16 * 2**20 // 4)  # 16 MiB, touched
 huge = sum(int(line.split()[1]) for line in open("/proc/self/smaps") if line.startswith("AnonHugePages:"))
@@ -55,19 +55,21 @@ print(json.dumps({"asked": asked, "huge_kb": huge}))
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="/proc and transparent huge pages")
-@pytest.mark.parametrize("preset", [None, "0"], ids=["unset", "user-said-0"])
-def test_use_huge_pages_backs_large_torch_blocks(preset: str | None) -> None:
+@pytest.mark.parametrize("preset,ask", [(None, "on"), ("0", "on"), (None, "off")],
+                         ids=["unset", "user-said-0", "asked-off"])
+def test_use_huge_pages_backs_large_torch_blocks(preset: str | None, ask: str) -> None:
     thp = Path("/sys/kernel/mm/transparent_hugepage/enabled")
     if not thp.exists() or "[never]" in thp.read_text():
         pytest.skip("transparent huge pages are off on this kernel")
     env = {k: v for k, v in os.environ.items() if k != "THP_MEM_ALLOC_ENABLE"}
     if preset is not None:
         env["THP_MEM_ALLOC_ENABLE"] = preset  # a user's own setting is kept
-    proc = subprocess.run([sys.executable, "-c", _THP_CHILD], capture_output=True, text=True, check=True,
+    proc = subprocess.run([sys.executable, "-c", _THP_CHILD, ask], capture_output=True, text=True, check=True,
                           cwd=Path(__file__).resolve().parents[1], env=env)
     result = json.loads(proc.stdout.strip().splitlines()[-1])
-    assert result["asked"] is (preset is None)
-    if preset is None:
+    wanted = preset is None and ask == "on"
+    assert result["asked"] is wanted
+    if wanted:
         assert result["huge_kb"] >= 8 * 1024  # most of the 16 MiB block (its 2 MiB-aligned part)
     elif "[madvise]" in thp.read_text():  # (with "always" every large block gets them anyway)
         assert result["huge_kb"] < 8 * 1024

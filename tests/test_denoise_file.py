@@ -231,3 +231,20 @@ def test_exr_written_by_mitsuba_aov_film(tmp_path: Path, ckpt: Path, mi, capsys:
     assert set(out.parts[0].channels) == set(src.parts[0].channels)
     for name in ("image.R", "albedo.G", "nn.Z"):
         assert np.array_equal(out.parts[0].channels[name], src.parts[0].channels[name])
+
+
+def test_the_command_asks_for_no_huge_pages(tmp_path: Path, rng: np.random.Generator, ckpt: Path,
+                                            monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture) -> None:
+    """One image a process: huge pages would slow its only call (denoise.allocator)."""
+    import pipeline.denoise_file as denoise_file
+
+    asked = []
+
+    def recording(*args, **kwargs) -> Denoiser:
+        asked.append(kwargs.get("huge_pages", True))
+        return Denoiser(*args, **kwargs)
+
+    monkeypatch.setattr(denoise_file, "Denoiser", recording)
+    write_exr(tmp_path / "in.exr", rng.random((H, W, 3)).astype(np.float32))
+    run(capsys, str(tmp_path / "in.exr"), str(tmp_path / "out.exr"), "--model", str(ckpt))
+    assert asked == [False]
