@@ -172,7 +172,6 @@ class _ClampConv1x1(nn.Module):
                 w, scale, shift = w[:, order], scale[:, order], shift[:, order]
             self.register_buffer("scale", scale.contiguous())
             self.register_buffer("shift", shift.contiguous())
-            self.upper = False
         else:
             scale, lo, hi, const = relu_affine_as_clamp(*bn_affine(bn1))
             bias = bias.double() + w @ const.double().view(-1)

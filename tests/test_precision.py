@@ -42,8 +42,8 @@ def test_flags_and_native_bfloat16(tmp_path: Path) -> None:
     assert native_bfloat16(amx) and native_bfloat16(avx512) and not native_bfloat16(plain)
     assert cpu_flags(tmp_path / "missing") == frozenset() and not native_bfloat16(tmp_path / "missing")
     assert compute_dtype("auto", True, amx) == torch.bfloat16
-    assert compute_dtype("auto", False, amx) == torch.float32  # flat nets lose ~0.1 dB in bfloat16 on clean renders
-    # ... at 128 spp; one that only runs on renders of <= 16 spp at most 0.05 dB (module docstring)
+    assert compute_dtype("auto", False, amx) == torch.float32  # flat nets lose ~0.1 dB in bfloat16
+    # ... at 128 spp; one that only runs on renders of <= 16 spp nothing (module docstring)
     assert compute_dtype("auto", False, amx, max_spp=FLAT_BF16_MAX_SPP) == torch.bfloat16
     assert compute_dtype("auto", False, amx, max_spp=FLAT_BF16_MAX_SPP + 1) == torch.float32
     assert compute_dtype("auto", False, plain, max_spp=4) == torch.float32
