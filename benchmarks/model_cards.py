@@ -1,11 +1,12 @@
 """Fill the model cards of ``model/weights/manifest.json`` from the files they describe.
 
 Per checkpoint: its file's SHA-256, the pixel filter of its training renders and a summary of its
-last training run (steps, CPU-minutes, data, warm start), all read from the checkpoint's own
-header. Per registry entry: PSNR at 4/16/128 spp and FLIP at 16 spp (scored mean over the eval
+last training run (steps, CPU-minutes, data, warm start) and, where recorded, the recipe stage that
+made it and the hours and hardware of its whole lineage, all read from the checkpoint's own header. Per registry entry: PSNR at 4/16/128 spp and FLIP at 16 spp (scored mean over the eval
 scenes, ``benchmarks/results/evaluate.json``, rows named by the entry) and its time as a ratio to
 OIDN's (``benchmarks/results/inference.json``: the median of the per-process ratios, at each size
-the dearest spp measured; ``time_ratio`` the largest over sizes). ``sources`` names each results
+the dearest spp measured; ``time_ratio`` the largest over sizes; ``time_by_spp`` at each spp the
+largest over sizes, what ``auto`` compares). ``sources`` names each results
 file's command and date. Nothing here is typed by hand: ``--check`` lists what differs and
 tests/test_model_cards.py runs it.
 
@@ -21,7 +22,7 @@ from typing import Any
 from console.usage import OneLineParser
 from imaging.atomic_io import write_text_atomic
 from imaging.hashing import file_sha256
-from model.checkpoint import read_checkpoint
+from model.checkpoint import checkpoint_meta, read_checkpoint
 from model.registry import CARD_SPP, MANIFEST, split_member
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -38,8 +39,11 @@ def _same_files(recorded: str | None, shas: set[str]) -> bool:
 
 
 def training_summary(path: Path) -> dict[str, Any]:
-    """What a checkpoint's header says of its last training run."""
+    """What a checkpoint's header says of its last training run and, where it records them
+    (``meta``, :func:`model.checkpoint.checkpoint_meta`), the recipe stage that made it and the
+    hours and hardware of every run up to it."""
     header = read_checkpoint(path).header
+    meta = checkpoint_meta(header)
     train = header.get("train_config") or {}
     data = header.get("data_config") or {}
     extra = header.get("extra") or {}
@@ -52,14 +56,18 @@ def training_summary(path: Path) -> dict[str, Any]:
                "data": ", ".join(part for part in (
                    f"{scenes['train']} scenes" if scenes.get("train") else "", "x".join(map(str, res)),
                    f"{min(spp)}-{max(spp)} spp" if spp else "",
-                   f"{data['ref_spp']}-spp references" if data.get("ref_spp") else "") if part) or None}
+                   f"{data['ref_spp']}-spp references" if data.get("ref_spp") else "") if part) or None,
+               "recipe_stage": (meta.get("recipe") or {}).get("stage"),
+               "hours": {k: round(float(v), 2) for k, v in meta["hours"].items()} if meta.get("hours") else None,
+               "hardware": list(meta["hardware"]) if meta.get("hardware") else None}
     return {k: v for k, v in summary.items() if v is not None}
 
 
 def entry_figures(name: str, shas: set[str], evaluate: dict[str, Any], inference: dict[str, Any]) -> dict[str, Any]:
     """An entry's card figures from the two result files, where they measured this entry's
     checkpoints (``shas``): PSNR per card spp, FLIP at 16, and per image size the time ratio to
-    OIDN at the dearest known spp (``time``) and with the spp unknown (``time_unknown_spp``)."""
+    OIDN at the dearest known spp (``time``) and with the spp unknown (``time_unknown_spp``); per
+    known spp the largest ratio over sizes (``time_by_spp``)."""
     figures: dict[str, Any] = {}
     rows = {spp: _summary_row(evaluate, name, spp) for spp in CARD_SPP}
     if all(rows.values()) and _same_files((evaluate.get("models", {}).get(name) or {}).get("sha256"), shas):
@@ -67,18 +75,21 @@ def entry_figures(name: str, shas: set[str], evaluate: dict[str, Any], inference
         figures["flip"] = {"16": round(float(rows[16]["flip"]), 3)}
     if not _same_files((inference.get("sha256") or {}).get(name), shas):
         return figures
-    times, unknown = {}, {}
+    times, unknown, by_spp = {}, {}, {}
     for size, per_model in (inference.get("ratios") or {}).items():
         ratios = per_model.get(name, {})
         known = {int(s): r for s, r in ratios.items() if s != "unknown"}
         if known:
             dearest = max(known, key=lambda s: known[s])
             times[size] = {"spp": dearest, "ratio": round(float(known[dearest]), 2)}
+        for spp, ratio in sorted(known.items()):
+            by_spp[str(spp)] = max(by_spp.get(str(spp), 0.0), round(float(ratio), 2))
         if "unknown" in ratios:
             unknown[size] = round(float(ratios["unknown"]), 2)
     if times:
         figures["time"] = times
         figures["time_ratio"] = max(t["ratio"] for t in times.values())
+        figures["time_by_spp"] = by_spp
     if unknown:
         figures["time_unknown_spp"] = unknown
     return figures

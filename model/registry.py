@@ -91,9 +91,11 @@ class Entry:
         value = (self.figures.get("psnr") or {}).get(str(spp))
         return None if value is None else float(value)
 
-    def time_ratio(self) -> float | None:
-        """Its time over OIDN's at its dearest spp (the largest measured ratio), if measured."""
-        value = self.figures.get("time_ratio")
+    def time_ratio(self, spp: int | None = None) -> float | None:
+        """Its time over OIDN's, if measured: at ``spp`` where that was measured (the largest over
+        image sizes), else at its dearest spp (the largest measured ratio)."""
+        value = (self.figures.get("time_by_spp") or {}).get(str(spp)) if spp is not None else None
+        value = self.figures.get("time_ratio") if value is None else value
         return None if value is None else float(value)
 
     def help_line(self) -> str:
@@ -167,6 +169,26 @@ class Selection:
             for member in (*choice.by_spp, *choice.unknown_members):
                 seen.setdefault(member, None)
         return list(seen)
+
+
+def training_line(card: CheckpointCard) -> str:
+    """How a checkpoint was trained, in words, from its card's ``training`` record: a recipe run
+    (from nothing, every stage recording) gives the hours and hardware of the whole lineage; any
+    other file its own run's, and what it was warm-started from."""
+    rec = card.training
+    hours = rec.get("hours") or {}
+    gpu = f", {float(hours['gpu']):g} GPU-hours" if float(hours.get("gpu") or 0) else ""
+    where = ", ".join(rec.get("hardware") or [])
+    if hours and rec.get("recipe_stage") and rec["recipe_stage"] != "finetune":
+        return (f"trained: {float(hours.get('cpu') or 0):g} CPU-hours{gpu} in all, from nothing, on "
+                f"{where or 'hardware not recorded'}: stage {rec['recipe_stage']} of `train --recipe {card.recipe}`")
+    steps = f"{rec['steps']:,} steps, " if rec.get("steps") else ""
+    minutes = f"{rec['cpu_minutes']:g} CPU-minutes" if rec.get("cpu_minutes") else "CPU time not recorded"
+    run = "in one run from scratch" if not rec.get("warm_start") else f"in its last run, from {rec['warm_start']}"
+    unrecorded = " and ".join(part for part in ("earlier runs" if rec.get("warm_start") else "",
+                                              "" if where else "hardware") if part)
+    return (f"trained: {steps}{minutes}{' on ' + where if where else ''} {run}"
+            f"{f' ({unrecorded} not recorded)' if unrecorded else ''}; recipe: `train --recipe {card.recipe}`")
 
 
 def range_suffix(lo: int, hi: int) -> str:
@@ -332,15 +354,15 @@ class Registry:
 
     def auto_entry(self, spp: int | None) -> str:
         """``auto``'s entry for a render of ``spp``: among the entries measured at the measured spp
-        nearest to it (in log2; a tie takes the larger), the cheapest (:meth:`Entry.time_ratio`)
+        nearest to it (in log2; a tie takes the larger), the cheapest there (:meth:`Entry.time_ratio`)
         whose PSNR is within :data:`AUTO_TOLERANCE_DB` of the best; the default entry when the spp
         is unknown or nothing is measured."""
         measured = sorted({int(s) for e in self.entries.values() for s in (e.figures.get("psnr") or {})})
         if spp is None or not measured:
             return self.default
         nearest = min(measured, key=lambda s: (abs(math.log2(s) - math.log2(spp)), -s))
-        scored = [(e.psnr(nearest), e.time_ratio(), e.name) for e in self.entries.values()
-                  if e.psnr(nearest) is not None and e.time_ratio() is not None]
+        scored = [(e.psnr(nearest), e.time_ratio(nearest), e.name) for e in self.entries.values()
+                  if e.psnr(nearest) is not None and e.time_ratio(nearest) is not None]
         if not scored:
             return self.default
         best = max(p for p, _, _ in scored)
@@ -366,6 +388,7 @@ class Registry:
                 f"{c.trained_spp[0] or 1}-{c.trained_spp[1] or ''} spp"
             lines.append(f"  {cname}: {c.description}; preset {c.preset}; trained on {spp}, "
                          f"{c.pixel_filter} filter; recipe {c.recipe}; sha256 {c.sha256[:12]}")
+            lines.append(f"    {training_line(c)}")
         for key in ("scoreboard", "inference"):
             if key in self.sources:
                 lines.append(f"  figures: {self.sources[key]}")

@@ -25,6 +25,9 @@ def test_figures_are_taken_only_from_results_that_measured_the_entrys_files() ->
     assert figures["psnr"] == {"4": 30.04, "16": 30.16, "128": 31.28} and figures["flip"] == {"16": 0.05}
     assert figures["time"] == {"1280x720": {"spp": 128, "ratio": 0.9}} and figures["time_ratio"] == 0.9
     assert figures["time_unknown_spp"] == {"1280x720": 0.7}
+    inference["ratios"]["256x256"] = {"fast": {"4": 0.6, "128": 0.8}}
+    by_spp = entry_figures("fast", shas, evaluate, inference)["time_by_spp"]
+    assert by_spp == {"4": 0.6, "128": 0.9}  # each spp's largest over sizes
     assert entry_figures("fast", {"c" * 64}, evaluate, inference) == {}  # other files: nothing taken
 
 
@@ -32,3 +35,5 @@ def test_a_checkpoints_training_summary_comes_from_its_header() -> None:
     card = registry().checkpoints["unet-m-k5-lowspp"]
     summary = training_summary(registry().folder / card.file)
     assert summary["steps"] > 0 and summary["cpu_minutes"] > 0 and "1-16 spp" in summary["data"]
+    # a recipe's run: the stage and the hours and hardware of everything up to the file, from its meta
+    assert summary["recipe_stage"] == "main" and summary["hours"]["cpu"] > 5 and summary["hardware"]

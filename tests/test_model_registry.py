@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from model.registry import AUTO, Registry, RegistryError, registry, split_member, split_range
+from model.registry import AUTO, CheckpointCard, Registry, RegistryError, registry, split_member, split_range, training_line
 from tests.test_denoiser import write_tiny_checkpoint
 
 
@@ -100,6 +100,25 @@ def test_auto_takes_the_cheapest_entry_level_with_the_best_at_the_nearest_measur
     assert reg.entries["high"].help_line() == "high: best; 32.00/36.00/40.05 dB at 4/16/128 spp; 2.00x OIDN's time"
 
 
+def test_auto_compares_the_times_at_the_spp_where_measured(tmp_path: Path) -> None:
+    """An entry dear at one spp (its ``time_ratio``) may be cheap at another (``time_by_spp``)."""
+    path = manifest(tmp_path)
+    data = json.loads(path.read_text())
+    figures = {"fast": ({"4": 30.0, "16": 35.0, "128": 40.0}, 0.5, {"4": 0.5, "16": 0.5, "128": 0.5}),
+               "balanced": ({"4": 30.0, "16": 35.95, "128": 40.3}, 2.5, {"4": 0.45, "16": 1.5, "128": 2.5}),
+               "high": ({"4": 30.0, "16": 36.0, "128": 40.3}, 2.4, {"4": 2.0, "16": 2.4, "128": 2.4})}
+    for name, (psnr, ratio, by_spp) in figures.items():
+        data["entries"][name]["figures"] = {"psnr": psnr, "time_ratio": ratio, "time_by_spp": by_spp}
+    data["entries"]["fast"]["figures"].pop("time_by_spp")  # measured only at its dearest spp
+    path.write_text(json.dumps(data))
+    reg = Registry.load(path)
+    # 4: all level, balanced the cheapest there; 16: balanced level with high at 1.5x, not its dearest 2.5x;
+    # 128: balanced level with high but dearer there
+    assert [reg.auto_entry(s) for s in (4, 16, 128)] == ["balanced", "balanced", "high"]
+    assert reg.entries["balanced"].time_ratio() == 2.5 and reg.entries["balanced"].time_ratio(16) == 1.5
+    assert reg.entries["fast"].time_ratio(16) == 0.5 and reg.entries["high"].time_ratio(8) == 2.4
+
+
 def test_an_unknown_spp_runs_the_tier_of_the_images_noise_level(tmp_path: Path) -> None:
     choice = Registry.load(manifest(tmp_path)).entry_choice("high")
     assert [m.spec for m in choice.for_unknown_spp(0.05)] == ["a@bfloat16"]
@@ -128,3 +147,23 @@ def test_the_shipped_registry_is_whole() -> None:
         assert all(f"recipe {m.path.stem}" in card for m in choice.by_spp)
     assert sorted(p.name for p in reg.folder.iterdir()) == sorted(
         ["manifest.json", *(c.file for c in reg.checkpoints.values())])  # nothing else in the weights folder
+
+
+def test_a_cards_training_line_says_what_its_file_records() -> None:
+    def card(**training: object) -> CheckpointCard:
+        return CheckpointCard(name="n", file="n.ckpt", sha256="0" * 64, preset="flat-s", description="d",
+                              trained_spp=(0, 0), recipe="r", training=training)
+
+    recipe_run = card(steps=10, cpu_minutes=3.0, warm_start="best", recipe_stage="main",
+                      hours={"cpu": 5.5, "gpu": 0.25}, hardware=["CPU A", "GPU B"])
+    assert training_line(recipe_run) == ("trained: 5.5 CPU-hours, 0.25 GPU-hours in all, from nothing, on CPU A, "
+                                         "GPU B: stage main of `train --recipe r`")
+    # a warm start outside a recipe: only its own run is known to be in its hours
+    warm = card(steps=2000, cpu_minutes=11.3, warm_start="old", hours={"cpu": 0.19, "gpu": 0.0}, hardware=["CPU A"])
+    assert training_line(warm) == ("trained: 2,000 steps, 11.3 CPU-minutes on CPU A in its last run, from old "
+                                   "(earlier runs not recorded); recipe: `train --recipe r`")
+    fine = card(steps=5, cpu_minutes=1.0, warm_start="x", recipe_stage="finetune", hours={"cpu": 0.1}, hardware=["A"])
+    assert "in its last run, from x (earlier runs not recorded)" in training_line(fine)
+    assert training_line(card(steps=20000, cpu_minutes=113.8)) == (
+        "trained: 20,000 steps, 113.8 CPU-minutes in one run from scratch (hardware not recorded); "
+        "recipe: `train --recipe r`")
