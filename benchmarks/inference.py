@@ -10,7 +10,10 @@ networks meant for that spp (``unknown``: one image without variance or spp, wha
 on a file that does not say its spp), the model loaded once as a user's program would, and
 OIDN 2 colour-only (``pyoidn``) on the same image. A variant is named ``MODEL[@PRECISION]|SPP``;
 ``ratios`` gives, per size, each model's median per-process time ratio to OIDN at each spp. Variants run round-robin, so a noisy neighbour
-slows them alike; the median of ``--repeat`` runs is reported with the load average seen (a busy
+slows them alike; each timed call follows an untimed call of the same variant, the steady state of
+a program that denoises frame after frame (a process's first call: :mod:`benchmarks.denoise_process`).
+Without it the variant after OIDN paid for OIDN: `fast` at 720p took 1.24 s right after an OIDN call
+against 0.71 s after another network's (median of five; docs/experiments.md); the median of ``--repeat`` runs is reported with the load average seen (a busy
 machine makes every number worse and small images worst: torch's two threads wait for each
 other at every layer). ``--threads`` sets torch's threads (0: the Denoiser's own choice).
 
@@ -122,7 +125,7 @@ def call(den: Denoiser, img: np.ndarray, var: np.ndarray, spp: int | str) -> Any
 def measure_size(width: int, height: int, models: dict[str, Denoiser], repeat: int,
                  spps: list[int | str]) -> dict[str, Any]:
     """Median seconds of every model at every spp and of OIDN on one image size (round-robin
-    over repeats)."""
+    over repeats, each timed call right after an untimed one of the same variant)."""
     img, var = _render(width, height)
     variants = {f"{name}|{spp}": (lambda d=den, s=spp: call(d, img, var, s))
                 for name, den in models.items() for spp in spps}
@@ -133,6 +136,7 @@ def measure_size(width: int, height: int, models: dict[str, Denoiser], repeat: i
     times: dict[str, list[float]] = {k: [] for k in variants}
     for _ in range(repeat):
         for key, fn in variants.items():
+            fn()  # settle: the timed call follows one of its own kind (module docstring)
             start = time.perf_counter()
             fn()
             times[key].append(time.perf_counter() - start)

@@ -36,3 +36,22 @@ def test_a_call_at_unknown_spp_has_no_variance_and_ratios_are_per_process_median
     sizes = {"8x8": {"oidn": {"process_s_per_mp": [1.0, 2.0, 4.0]},
                      "fast|4": {"process_s_per_mp": [0.5, 1.0, 8.0]}}}
     assert ratios(sizes) == {"8x8": {"fast": {"4": 0.5}}}
+
+
+def test_each_timed_call_follows_an_untimed_call_of_the_same_variant(monkeypatch) -> None:
+    """Whatever ran before (OIDN's threads and buffers) must not be billed to the next variant."""
+    import benchmarks.inference as inference
+
+    log: list[str] = []
+    clock = iter(range(1000))
+    monkeypatch.setattr(inference, "call", lambda den, img, var, spp: log.append(f"{den}|{spp}"))
+    monkeypatch.setattr(inference, "oidn_available", lambda: True)
+    monkeypatch.setattr(inference, "oidn_denoise", lambda img: log.append("oidn"))
+    monkeypatch.setattr(inference.time, "perf_counter", lambda: log.append("clock") or float(next(clock)))
+    result = inference.measure_size(8, 8, {"a": "A", "b": "B"}, repeat=2, spps=[4])
+    clocks = [i for i, entry in enumerate(log) if entry == "clock"]
+    starts = clocks[::2]  # each timing reads the clock before and after its call
+    assert all(log[i + 2] == "clock" for i in starts)
+    assert sorted(log[i + 1] for i in starts) == ["A|4"] * 2 + ["B|4"] * 2 + ["oidn"] * 2  # the timed calls
+    assert all(log[i - 1] == log[i + 1] for i in starts)  # each right after an untimed call of its own
+    assert set(result) == {"a|4", "b|4", "oidn"} and all(len(r["runs"]) == 2 for r in result.values())
