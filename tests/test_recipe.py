@@ -13,7 +13,7 @@ from model.checkpoint import checkpoint_meta, pixel_filter, read_checkpoint
 from model.config import DEFAULT_TRAIN_MODEL
 from training.cli import main
 from training.recipe import load_recipe, parse_recipe, recipe_names
-from training.recipe_run import RecipeRun, run_recipe
+from training.recipe_run import RecipeRun, plan, run_recipe
 from training.train_config import TrainConfig
 
 TINY = """
@@ -113,6 +113,20 @@ def test_hash_names_what_is_trained_not_the_notes() -> None:
     assert noted.sha256 == base.sha256 and noted.description == "notes"
     assert _parse(TINY.replace("lr = 5e-4", "lr = 4e-4")).sha256 != base.sha256
     assert _parse(TINY.replace("seed = 0", "seed = 1")).sha256 != base.sha256
+
+
+def test_a_stage_key_names_what_is_computed_not_what_it_is_called() -> None:
+    tiny = _parse(TINY)
+    renamed = _parse(TINY.replace('"first"', '"warm"').replace("tiny16", "other16"))
+    assert tiny.stage_key("first") == renamed.stage_key("warm") and tiny.stage_key("second") == renamed.stage_key("second")
+    for change in (("steps = 4", "steps = 5"), ("seed = 0", "seed = 1"), ("layers = 2 }\npatch = 16\nbatch = 4\nsteps = 4",
+                                                                          "layers = 3 }\npatch = 16\nbatch = 4\nsteps = 4")):
+        assert change[0] in TINY
+        other = _parse(TINY.replace(*change, 1))
+        assert other.stage_key("first") != tiny.stage_key("first")
+        assert other.stage_key("second") != tiny.stage_key("second")  # it starts from another stage
+    shipped = load_recipe("flat-s-allspp"), load_recipe("flat-s-lowspp")
+    assert [shipped[0].stage_key(s) for s in ("pretrain", "main")] == [shipped[1].stage_key(s) for s in ("pretrain", "flat")]
 
 
 def test_shipped_recipes_parse_and_start_from_scratch() -> None:
@@ -224,6 +238,20 @@ def test_tiny_recipe_end_to_end_with_a_kill_and_a_fine_tune(tmp_path: Path,
 
     again = run_recipe(recipe, dataclasses.replace(run, minutes=None), log=lambda line: None)
     assert again.model == result.model and again.stages == result.stages
+
+    # another recipe whose first stage is this one's (other names) takes it from the run beside it
+    shares = TINY.replace('name = "tiny"', 'name = "tiny2"').replace('"first"', '"warm"').replace("5e-4", "3e-4")
+    (tmp_path / "tiny2.toml").write_text(shares)
+    run2 = dataclasses.replace(run, out=tmp_path / "run2", minutes=None)
+    lines: list[str] = []
+    second = run_recipe(parse_recipe(shares, tmp_path / "tiny2.toml"), run2, log=lines.append)
+    assert second.stages["warm"]["taken_from"] == str(out / "first") and "taken_from" not in second.stages["second"]
+    assert (run2.out / "warm" / "log.jsonl").read_bytes() == (out / "first" / "log.jsonl").read_bytes()
+    assert any("copied, not trained" in line for line in lines)
+    assert read_checkpoint(second.model).header["train_config"]["init_from"] == str(run2.out / "warm" / "best.ckpt")
+    planned = plan(parse_recipe(shares, tmp_path / "tiny2.toml"), dataclasses.replace(run2, out=tmp_path / "run3"))
+    assert f"# stage warm: copied from {out / 'first'} (the same stage, finished)" in planned
+    assert any(line.startswith("# stage second: train --data") for line in planned)  # tiny2 is a repeat: not shared
 
     other = parse_recipe(TINY.replace("lr = 5e-4", "lr = 4e-4"), tmp_path / "tiny.toml")
     with pytest.raises(ConfigError, match="holds a run of recipe 'tiny'"):

@@ -179,6 +179,17 @@ class Recipe:
                 return stage
         raise ConfigError(f"recipe {self.name}: no stage {name!r}")
 
+    def stage_key(self, name: str) -> str:
+        """sha256 of what stage ``name`` computes: its network, crops and settings, the content of
+        its datasets (settings and scene count, not their names) and, recursively, the stage it
+        starts from. Two recipes' stages with the same key train the same thing (shared stages)."""
+        stage = self.stage(name)
+        data = [{"scenes": self.datasets[d].scenes, "config": dataclasses.asdict(self.datasets[d].config)}
+                for d in stage.data]
+        payload = {"model": stage.model.to_dict(), "patch": dataclasses.asdict(stage.patch), "fields": stage.fields,
+                   "data": data, "init": self.stage_key(stage.init_from) if stage.init_from else None}
+        return hashlib.sha256(json.dumps(payload, sort_keys=True, default=str).encode()).hexdigest()
+
     def identity(self, stage: str) -> dict[str, str]:
         """What a checkpoint of ``stage`` records about the recipe: {"name", "sha256", "stage"}."""
         return {"name": self.name, "sha256": self.sha256, "stage": stage}

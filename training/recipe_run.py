@@ -11,7 +11,10 @@ Datasets go to ``DATA_ROOT/<dataset name>`` (``--data-root``, default ``data``),
 :func:`dataset_gen.generate.generate_dataset`, which skips finished scenes; a folder there made with
 other settings is refused, so recipes that share a dataset (by name and settings) render it once.
 After a kill, the same command continues: the dataset where it stopped, a stage from its
-``last.ckpt``, later stages from the start. ``--minutes`` stops the whole command after that much
+``last.ckpt``, later stages from the start. A stage that a finished run of another recipe beside
+``DIR`` (in the same parent folder) has already trained, the same computation by
+:meth:`training.recipe.Recipe.stage_key`, is copied from there instead of trained again
+(``done.json`` names the source; to train it again, run in another parent folder). ``--minutes`` stops the whole command after that much
 wall time, ``--cpu-minutes`` each stage after that much optimisation CPU time, leaving the stage
 resumable (run again, with a larger budget to go further).
 
@@ -36,7 +39,7 @@ from imaging.json_read import parse_json
 from model.checkpoint import read_checkpoint, strip_optimizer
 from model.config import ModelConfig
 from training.dataset import read_manifest
-from training.recipe import FINETUNE, DatasetSpec, Recipe, Stage
+from training.recipe import FINETUNE, DatasetSpec, Recipe, Stage, parse_recipe
 from training.train import resume_config, train
 from training.train_config import RESUMABLE_OVERRIDES, TrainConfig
 
@@ -117,7 +120,9 @@ def plan(recipe: Recipe, run: RecipeRun) -> list[str]:
         words += [f"--out {config.out}"] + ([f"--init-from {config.init_from}"] if config.init_from else [])
         settings = ", ".join(f"{k} {v}" for k, v in {"network": stage.network, "patch": stage.patch.size,
                                                           "detail_crops": stage.patch.detail, **stage.fields}.items())
-        lines.append(f"# stage {stage.name}: " + " ".join(words))
+        source = shared_stage(recipe, stage, run) if _untrained(run.out / stage.name) else None
+        lines.append(f"# stage {stage.name}: " + (f"copied from {source} (the same stage, finished)" if source
+                                                   else " ".join(words)))
         lines.append(f"#   with {settings}")
         if stage.measured:
             lines.append("#   measured: " + ", ".join(f"{k} {v}" for k, v in stage.measured.items()))
@@ -211,6 +216,10 @@ def run_stage(recipe: Recipe, stage: Stage, run: RecipeRun, progress: ProgressFa
     done = folder / DONE
     if done.exists():
         return _read_record(done, "delete it to train the stage again")
+    if _untrained(folder):
+        source = shared_stage(recipe, stage, run)
+        if source is not None:
+            return take_shared_stage(source, folder, log)
     wanted = stage.train_config(folder, stage_data(recipe, stage, run), stage_init(recipe, stage, run), run.control)
     resume = (folder / "last.ckpt").exists()
     config = _resumed_config(folder, wanted) if resume else wanted
@@ -222,6 +231,49 @@ def run_stage(recipe: Recipe, stage: Stage, run: RecipeRun, progress: ProgressFa
         return None  # stopped by this command's limit, not the recipe's: the same command goes on
     record = {"step": result.step, "best_psnr": result.best_psnr, "stopped": result.stopped}
     write_text_atomic(done, json.dumps(record) + "\n")
+    return record
+
+
+def shared_stage(recipe: Recipe, stage: Stage, run: RecipeRun) -> Path | None:
+    """A finished stage that computes what ``stage`` does (:meth:`Recipe.stage_key`) in a run of
+    another recipe beside ``run.out`` (the same parent folder), or None. Only runs from their
+    recipes' own datasets share stages; another run of the same recipe (a repeat) does not."""
+    if run.data or run.init_from:
+        return None
+    key = recipe.stage_key(stage.name)
+    for other in sorted(p for p in run.out.parent.iterdir() if p.is_dir() and p != run.out):
+        try:
+            record = parse_json((other / "recipe.json").read_text(encoding="utf-8"))
+            theirs = parse_recipe(record["text"], other / "recipe.json")
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError, ConfigError, KeyError, TypeError):
+            continue  # not a recipe run (or one this code cannot read): nothing to share
+        if record.get("data") or record.get("init_from") or record.get("sha256") == recipe.sha256:
+            continue  # a fine-tune, or another run of this recipe (a repeat is meant to train again)
+        for candidate in theirs.stages:
+            folder = other / candidate.name
+            if (folder / DONE).is_file() and (folder / "last.ckpt").is_file() \
+                    and theirs.stage_key(candidate.name) == key:
+                return folder
+    return None
+
+
+def _untrained(folder: Path) -> bool:
+    """True while a stage's folder holds no training of its own (neither finished nor resumable),
+    and the folder it would sit in exists (else there is nothing beside it to share)."""
+    return folder.parent.parent.is_dir() and not (folder / DONE).exists() and not (folder / "last.ckpt").exists()
+
+
+def take_shared_stage(source: Path, folder: Path, log: Log) -> dict[str, Any]:
+    """Copy the finished stage ``source`` into ``folder`` (which holds nothing of this stage yet)
+    and mark it done, naming where it came from."""
+    import shutil
+
+    if folder.exists():
+        shutil.rmtree(folder)
+    shutil.copytree(source, folder)
+    record = {**_read_record(folder / DONE, "delete the folder to train the stage"), "taken_from": str(source)}
+    write_text_atomic(folder / DONE, json.dumps(record) + "\n")
+    log(f"stage {folder.name}: the same as {source} (same network, settings, data and start): copied, not trained")
     return record
 
 
