@@ -9,13 +9,14 @@ inverse, noise guard, energy correction) of that many samples per pixel, so each
 networks meant for that spp (``unknown``: one image without variance or spp, what ``denoise`` runs
 on a file that does not say its spp), the model loaded once as a user's program would, and
 OIDN 2 colour-only (``pyoidn``) on the same image. A variant is named ``MODEL[@PRECISION]|SPP``;
-``ratios`` gives, per size, each model's median per-process time ratio to OIDN at each spp. Variants run round-robin, so a noisy neighbour
-slows them alike; each timed call follows an untimed call of the same variant, the steady state of
-a program that denoises frame after frame (a process's first call: :mod:`benchmarks.denoise_process`).
-Without it the variant after OIDN paid for OIDN: `fast` at 720p took 1.24 s right after an OIDN call
-against 0.71 s after another network's (median of five; docs/experiments.md); the median of ``--repeat`` runs is reported with the load average seen (a busy
-machine makes every number worse and small images worst: torch's two threads wait for each
-other at every layer). ``--threads`` sets torch's threads (0: the Denoiser's own choice).
+``ratios`` gives, per size, each model's median per-process time ratio to OIDN at each spp.
+Variants run round-robin, so a noisy neighbour slows them alike; each timed call follows an untimed
+call of the same variant, the steady state of a program that denoises frame after frame (a
+process's first call: :mod:`benchmarks.denoise_process`). Without it the variant after OIDN paid
+for OIDN: ``fast`` at 720p took 1.24 s right after an OIDN call against 0.71 s after another
+network's (median of five; docs/experiments.md). The median of ``--repeat`` runs is reported with
+the load average seen (a busy machine makes every number worse and small images worst: torch's two
+threads wait for each other at every layer). ``--threads`` sets torch's threads (0: the Denoiser's own choice).
 
     python -m benchmarks.inference [--quick] [--sizes 128x128,256x256,1280x720,1920x1080]
         [--models fast,balanced,high] [--spp 4,16,128,unknown] [--precisions auto] [--repeat 5]

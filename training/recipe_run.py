@@ -14,9 +14,9 @@ After a kill, the same command continues: the dataset where it stopped, a stage 
 ``last.ckpt``, later stages from the start. A stage that a finished run of another recipe beside
 ``DIR`` (in the same parent folder) has already trained, the same computation by
 :meth:`training.recipe.Recipe.stage_key`, is copied from there instead of trained again
-(``done.json`` names the source; to train it again, run in another parent folder). ``--minutes`` stops the whole command after that much
-wall time, ``--cpu-minutes`` each stage after that much optimisation CPU time, leaving the stage
-resumable (run again, with a larger budget to go further).
+(``done.json`` names the source; to train it again, run in another parent folder). ``--minutes``
+stops the whole command after that much wall time, ``--cpu-minutes`` each stage after that much
+optimisation CPU time, leaving the stage resumable (run again, with a larger budget to go further).
 
 With ``--data MINE`` (and ``--extra-data``), the recipe trains on those folders instead of its
 datasets; with ``--init-from MODEL`` as well, it fine-tunes: one stage, ``finetune``, with the final
@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import shutil
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -266,8 +267,6 @@ def _untrained(folder: Path) -> bool:
 def take_shared_stage(source: Path, folder: Path, log: Log) -> dict[str, Any]:
     """Copy the finished stage ``source`` into ``folder`` (which holds nothing of this stage yet)
     and mark it done, naming where it came from."""
-    import shutil
-
     if folder.exists():
         shutil.rmtree(folder)
     shutil.copytree(source, folder)
