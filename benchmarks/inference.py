@@ -16,7 +16,8 @@ process's first call: :mod:`benchmarks.denoise_process`). Without it the variant
 for OIDN: ``fast`` at 720p took 1.24 s right after an OIDN call against 0.71 s after another
 network's (median of five; docs/experiments.md). The median of ``--repeat`` runs is reported with
 the load average seen (a busy machine makes every number worse and small images worst: torch's two
-threads wait for each other at every layer). ``--threads`` sets torch's threads (0: the Denoiser's own choice).
+threads wait for each other at every layer). ``--threads`` sets torch's threads (0: the Denoiser's
+own choice).
 
     python -m benchmarks.inference [--quick] [--sizes 128x128,256x256,1280x720,1920x1080]
         [--models fast,balanced,high] [--spp 4,16,128,unknown] [--precisions auto] [--repeat 5]
@@ -132,12 +133,12 @@ def measure_size(width: int, height: int, models: dict[str, Denoiser], repeat: i
                 for name, den in models.items() for spp in spps}
     if oidn_available():
         variants["oidn"] = lambda: oidn_denoise(img)
-    for fn in variants.values():  # warm-up: first-call allocations and kernel selection
-        fn()
     times: dict[str, list[float]] = {k: [] for k in variants}
     for _ in range(repeat):
         for key, fn in variants.items():
-            fn()  # settle: the timed call follows one of its own kind (module docstring)
+            # untimed: the timed call follows one of its own kind (module docstring); in the first
+            # round this is the variant's warm-up (first-call allocations and kernel selection)
+            fn()
             start = time.perf_counter()
             fn()
             times[key].append(time.perf_counter() - start)

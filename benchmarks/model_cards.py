@@ -7,8 +7,8 @@ Per registry entry: PSNR at 4/16/128 spp and FLIP at 16 spp (scored mean over th
 ``benchmarks/results/evaluate.json``, rows named by the entry) and its time as a ratio to OIDN's
 (``benchmarks/results/inference.json``: the median of the per-process ratios, at each size the
 dearest spp measured; ``time_ratio`` the largest over sizes; ``time_by_spp`` at each spp the largest
-over sizes, what ``auto`` compares). ``sources`` names each results file's command and date. Nothing here is typed by hand: ``--check`` lists what differs and
-tests/test_model_cards.py runs it.
+over sizes, what ``auto`` compares). ``sources`` names each results file's command and date.
+Nothing here is typed by hand: ``--check`` lists what differs and tests/test_model_cards.py runs it.
 
     python -m benchmarks.model_cards [--check]
 """

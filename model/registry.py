@@ -179,6 +179,7 @@ def training_line(card: CheckpointCard) -> str:
     hours = rec.get("hours") or {}
     gpu = f", {float(hours['gpu']):g} GPU-hours" if float(hours.get("gpu") or 0) else ""
     where = ", ".join(rec.get("hardware") or [])
+    # "finetune": training.recipe.FINETUNE, a stage started from a given file (model/ sits below training/)
     if hours and rec.get("recipe_stage") and rec["recipe_stage"] != "finetune":
         return (f"trained: {float(hours.get('cpu') or 0):g} CPU-hours{gpu} in all, from nothing, on "
                 f"{where or 'hardware not recorded'}: stage {rec['recipe_stage']} of `train --recipe {card.recipe}`")
