@@ -4,13 +4,15 @@
 
 Copies each wheel into ``--out``; a Mitsuba wheel loses the variants training data does not need
 (every variant but ``scalar_rgb``, ``llvm_ad_rgb`` and ``cuda_ad_rgb``) and the spectral upsampling
-table (``data/srgb.coeff``, read by spectral variants only): 59.7 -> 40.2 MiB for Mitsuba 3.9.1 on
-Python 3.12 (measured; the same cut of the Python 3.11 package renders every scene family with the
-LLVM variant). ``benchmarks/gpu_train.sh`` unpacks what it finds there. The wheels themselves come
-from PyPI on a machine with network, for the GPU machine's Python::
+table (``data/srgb.coeff``, read by spectral variants only). Every copy is recompressed with LZMA
+(a zip still, which ``python -m zipfile -e`` unpacks; pip's wheels use deflate): Mitsuba 3.9.1 for
+Python 3.12 59.7 -> 24.8 MiB, Dr.Jit 4.7 -> 3.3, OpenEXR 1.7 -> 1.3 (measured; the same cut of the
+Python 3.11 package renders every scene family with the LLVM variant). ``benchmarks/gpu_train.sh``
+unpacks what it finds there. The wheels themselves come from PyPI on a machine with network, for
+the GPU machine's Python (it has numpy, safetensors and tqdm already)::
 
     pip download --no-deps --only-binary=:all: --python-version 3.12 --platform manylinux_2_28_x86_64 \\
-        -d wheels mitsuba==3.9.1 drjit==1.5.0 OpenEXR safetensors tqdm
+        -d wheels mitsuba==3.9.1 drjit==1.5.0 OpenEXR
 """
 from __future__ import annotations
 
@@ -32,14 +34,16 @@ def kept(name: str) -> bool:
 
 
 def pack(wheel: Path, out: Path) -> Path:
-    """Copy ``wheel`` into ``out`` (slimmed when it is Mitsuba's); return the copy's path."""
+    """Copy ``wheel`` into ``out``, LZMA-compressed (and slimmed when it is Mitsuba's); return the copy's path."""
     out.mkdir(parents=True, exist_ok=True)
     target = out / wheel.name
-    with zipfile.ZipFile(wheel) as source, zipfile.ZipFile(target, "w", zipfile.ZIP_DEFLATED, compresslevel=9) as dest:
+    with zipfile.ZipFile(wheel) as source, zipfile.ZipFile(target, "w", zipfile.ZIP_LZMA) as dest:
         slim = wheel.name.startswith("mitsuba-")
         for item in source.infolist():
             if not slim or kept(item.filename):
-                dest.writestr(item, source.read(item.filename))
+                copy = zipfile.ZipInfo(item.filename, item.date_time)
+                copy.external_attr, copy.compress_type = item.external_attr, zipfile.ZIP_LZMA
+                dest.writestr(copy, source.read(item))
     return target
 
 

@@ -26,6 +26,7 @@ def test_dry_run_on_a_cpu_checks_and_plans(tmp_path: Path) -> None:
     assert done.returncode == 0, done.stderr
     out = done.stdout
     assert "CUDA available: False" in out
+    assert "renders with Mitsuba's llvm_ad_rgb" in out  # this machine has a libLLVM >= 16 (make bootstrap)
     assert f"--recipe unet-m-k5-lowspp --out {tmp_path / 'run'} --data-root {tmp_path / 'data'} --device cuda " \
            "--minutes 8" in out
     assert f"generate-dataset --scenes 150 --out {tmp_path / 'data'}/low256 --res 256x256" in out
@@ -37,6 +38,18 @@ def test_the_run_folder_defaults_under_the_device_tools_out(tmp_path: Path) -> N
     done = _run(tmp_path, "smoke", "2", DRY_RUN="1", OUT=str(tmp_path / "out"))
     assert done.returncode == 0, done.stderr
     assert f"--out {tmp_path / 'out' / 'smoke'} " in done.stdout
+
+
+def test_without_libllvm_or_a_cuda_variant_it_renders_with_the_scalar_variant(tmp_path: Path) -> None:
+    done = _run(tmp_path, "smoke", "2", str(tmp_path / "run"), DRY_RUN="1", DRJIT_LIBLLVM_PATH=str(tmp_path / "none.so"))
+    assert done.returncode == 0, done.stderr
+    assert "renders with Mitsuba's scalar_rgb: no libLLVM >= 16 and no working CUDA variant" in done.stdout
+
+
+def test_a_variant_the_user_names_is_kept(tmp_path: Path) -> None:
+    done = _run(tmp_path, "smoke", "2", str(tmp_path / "run"), DRY_RUN="1", DENOISER_MI_VARIANT="scalar_rgb")
+    assert done.returncode == 0, done.stderr
+    assert "renders with" not in done.stdout
 
 
 @pytest.mark.parametrize("args, message", [(("smoke",), "usage: "), (("smoke", "ten"), "MINUTES must be a number")])
@@ -66,7 +79,10 @@ def test_pack_slims_mitsuba_to_the_variants_training_renders_with(tmp_path: Path
         with zipfile.ZipFile(path, "w") as z:
             for name in names:
                 z.writestr(name, name)
-    kept = zipfile.ZipFile(pack(wheel, tmp_path / "out")).namelist()
+    packed = zipfile.ZipFile(pack(wheel, tmp_path / "out"))
+    assert {item.compress_type for item in packed.infolist()} == {zipfile.ZIP_LZMA}
+    assert all(packed.read(name) == name.encode() for name in packed.namelist())
+    kept = packed.namelist()
     assert kept == ["mitsuba/__init__.py", "mitsuba/libmitsuba.so",
                     *(f"mitsuba/{v}.cpython-312-x86_64-linux-gnu.so" for v in ("scalar_rgb", "llvm_ad_rgb", "cuda_ad_rgb")),
                     "mitsuba/plugins/path.so"]
