@@ -7,7 +7,7 @@ PY := $(VENV)/bin/python
 TORCH_VERSION := 2.13.0
 STAMP := $(VENV)/.installed
 
-.PHONY: test demo evaluate fuzz mutation bootstrap llvm chromium clean
+.PHONY: test demo evaluate fuzz mutation bootstrap llvm chromium gpu-wheels clean
 
 test: bootstrap
 	$(PY) -m pytest -q
@@ -61,6 +61,16 @@ $(STAMP): pyproject.toml | $(VENV)/bin/python
 	$(PY) -m pip install -q --disable-pip-version-check torch==$(TORCH_VERSION)
 	$(PY) -m pip install -q --disable-pip-version-check -e '.[dev,oidn,cluster]'
 	touch $(STAMP)
+
+# Wheels for a lent GPU machine (Python 3.12, no Mitsuba, no network), packed to travel with the
+# tree: docs/training.md, "On a GPU". Name shared/gpu/wheels in the device tool's carry.
+GPU_WHEEL_DIR ?= shared/gpu/wheels
+gpu-wheels: bootstrap
+	rm -rf .tmp-gpu-wheels && $(PY) -m pip download -q --disable-pip-version-check --no-deps --only-binary=:all: \
+	  --python-version 3.12 --implementation cp --platform manylinux_2_28_x86_64 --platform manylinux_2_27_x86_64 \
+	  --platform manylinux_2_17_x86_64 -d .tmp-gpu-wheels mitsuba==3.9.1 drjit==1.5.0 OpenEXR==3.5.3
+	rm -rf $(GPU_WHEEL_DIR) && $(PY) -m benchmarks.gpu_pack .tmp-gpu-wheels/*.whl --out $(GPU_WHEEL_DIR)
+	rm -rf .tmp-gpu-wheels
 
 clean:
 	rm -rf $(VENV) *.egg-info
