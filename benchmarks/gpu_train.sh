@@ -108,6 +108,8 @@ EOF
     scalar_rgb) say "renders with Mitsuba's scalar_rgb: no libLLVM >= 16 and no working CUDA variant (slow)" ;;
     *) say "renders with Mitsuba's $DENOISER_MI_VARIANT" ;;
   esac
+else
+  say "renders with Mitsuba's $DENOISER_MI_VARIANT (DENOISER_MI_VARIANT)"
 fi
 
 TRAIN=("$PY" -m training.cli --recipe "$RECIPE" --out "$RUN_DIR" --data-root "$DATA_ROOT" --device "$DEVICE"

@@ -49,7 +49,7 @@ def test_without_libllvm_or_a_cuda_variant_it_renders_with_the_scalar_variant(tm
 def test_a_variant_the_user_names_is_kept(tmp_path: Path) -> None:
     done = _run(tmp_path, "smoke", "2", str(tmp_path / "run"), DRY_RUN="1", DENOISER_MI_VARIANT="scalar_rgb")
     assert done.returncode == 0, done.stderr
-    assert "renders with" not in done.stdout
+    assert "renders with Mitsuba's scalar_rgb (DENOISER_MI_VARIANT)" in done.stdout
 
 
 @pytest.mark.parametrize("args, message", [(("smoke",), "usage: "), (("smoke", "ten"), "MINUTES must be a number")])
