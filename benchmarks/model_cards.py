@@ -24,6 +24,7 @@ from imaging.atomic_io import write_text_atomic
 from imaging.hashing import file_sha256
 from model.checkpoint import checkpoint_meta, read_checkpoint
 from model.registry import CARD_SPP, MANIFEST, split_member
+from training.recipe import FINETUNE
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results"
@@ -52,7 +53,7 @@ def training_summary(path: Path) -> dict[str, Any]:
     res = data.get("res") or []
     summary = {"steps": header.get("step"),
                "cpu_minutes": round(float(extra["cpu_s"]) / 60, 1) if extra.get("cpu_s") else None,
-               "warm_start": Path(train["init_from"]).stem if train.get("init_from") else None,
+               "warm_start": warm_start_name(train.get("init_from"), (meta.get("recipe") or {}).get("stage")),
                "data": ", ".join(part for part in (
                    f"{scenes['train']} scenes" if scenes.get("train") else "", "x".join(map(str, res)),
                    f"{min(spp)}-{max(spp)} spp" if spp else "",
@@ -61,6 +62,17 @@ def training_summary(path: Path) -> dict[str, Any]:
                "hours": {k: round(float(v), 2) for k, v in meta["hours"].items()} if meta.get("hours") else None,
                "hardware": list(meta["hardware"]) if meta.get("hardware") else None}
     return {k: v for k, v in summary.items() if v is not None}
+
+
+def warm_start_name(init_from: str | None, stage: str | None) -> str | None:
+    """What a run started from: inside a recipe the earlier stage (``RUN/first/best.ckpt`` ->
+    ``stage first``), a fine-tune's or a plain run's file by its stem; None from scratch."""
+    if not init_from:
+        return None
+    path = Path(init_from)
+    if stage and stage != FINETUNE and path.stem in ("best", "last"):
+        return f"stage {path.parent.name}"
+    return path.stem
 
 
 def entry_figures(name: str, shas: set[str], evaluate: dict[str, Any], inference: dict[str, Any]) -> dict[str, Any]:

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import json
 
-from benchmarks.model_cards import entry_figures, fill, training_summary
+from benchmarks.model_cards import warm_start_name, entry_figures, fill, training_summary
 from model.registry import MANIFEST, registry
 
 
@@ -37,3 +37,12 @@ def test_a_checkpoints_training_summary_comes_from_its_header() -> None:
     assert summary["steps"] > 0 and summary["cpu_minutes"] > 0 and "1-16 spp" in summary["data"]
     # a recipe's run: the stage and the hours and hardware of everything up to the file, from its meta
     assert summary["recipe_stage"] == "main" and summary["hours"]["cpu"] > 5 and summary["hardware"]
+
+
+def test_a_recipe_stageswarm_start_name_is_named_by_its_stage() -> None:
+    summary = training_summary(registry().folder / registry().checkpoints["unet-l-allspp"].file)
+    assert summary["recipe_stage"] == "main" and summary["warm_start"] == "stage first"
+    assert warm_start_name("runs/x/first/best.ckpt", "main") == "stage first"
+    assert warm_start_name("model/weights/flat-s-allspp.ckpt", "finetune") == "flat-s-allspp"
+    assert warm_start_name("runs/old/best.ckpt", None) == "best"  # outside a recipe: the file, as it was given
+    assert warm_start_name(None, "main") is None
