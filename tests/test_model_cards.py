@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import json
 
-from benchmarks.model_cards import warm_start_name, entry_figures, fill, training_summary
+from benchmarks.model_cards import entry_figures, fill, training_summary, warm_start_name
 from model.registry import MANIFEST, registry
 
 
@@ -39,7 +39,7 @@ def test_a_checkpoints_training_summary_comes_from_its_header() -> None:
     assert summary["recipe_stage"] == "main" and summary["hours"]["cpu"] > 5 and summary["hardware"]
 
 
-def test_a_recipe_stageswarm_start_name_is_named_by_its_stage() -> None:
+def test_a_recipe_stages_warm_start_is_named_by_its_stage() -> None:
     summary = training_summary(registry().folder / registry().checkpoints["unet-l-allspp"].file)
     assert summary["recipe_stage"] == "main" and summary["warm_start"] == "stage first"
     assert warm_start_name("runs/x/first/best.ckpt", "main") == "stage first"
