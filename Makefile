@@ -13,10 +13,10 @@ test: bootstrap
 	$(PY) -m pytest -q
 
 # 256x256 at 16 spp, ours and OIDN against the shipped 4096-spp reference (scenes/demo.py):
-# open demo-output/report.html.
+# open demo-output/report.html (each `make demo` replaces it).
 demo: bootstrap
 	$(VENV)/bin/render-and-denoise scenes/examples/demo.xml --res 256 256 --spp 16 \
-	  --reference scenes/examples/demo_reference.exr --out demo-output
+	  --reference scenes/examples/demo_reference.exr --out demo-output --overwrite
 
 evaluate: bootstrap
 	$(PY) -m benchmarks.evaluate

@@ -68,7 +68,8 @@ def main(argv: list[str] | None = None) -> int:
                 for w, h in args.sizes:
                     files[(w, h)] = folder / f"{kind}_{w}x{h}.exr"
                     _render(spp, w, h, files[(w, h)])
-                commands = {m: (lambda src, m=m: [denoise, str(src), str(folder / "out.exr"), "--model", m, "--quiet"])
+                commands = {m: (lambda src, m=m: [denoise, str(src), str(folder / "out.exr"), "--model", m, "--quiet",
+                                                  "--overwrite"])
                             for m in args.models}
                 commands["oidn"] = lambda src: [sys.executable, "-c", OIDN_SCRIPT, str(src), str(folder / "out.exr")]
                 times: dict[str, dict[str, list[float]]] = {n: {f"{w}x{h}": [] for w, h in args.sizes} for n in commands}

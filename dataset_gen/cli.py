@@ -69,7 +69,10 @@ def build_parser() -> argparse.ArgumentParser:
     p = OneLineParser(prog="generate-dataset", description=__doc__.split("\n")[0])
     p.add_argument("--scenes", type=int,
                    help="number of scenes (indices 0..N-1); with --scene-files, default: one per file")
-    p.add_argument("--out", required=True, help="dataset folder (created; resumed if it exists)")
+    p.add_argument("--out", required=True,
+                   help="dataset folder: created (or an empty one used); one holding a dataset of the same "
+                        "settings is resumed (the missing scenes added, none replaced); a file, a dataset of "
+                        "other settings or a folder holding anything else is refused")
     p.add_argument("--families", type=name_list,
                    default=DEFAULT_FAMILIES, help=f"comma-separated subset of: {', '.join(FAMILIES)}")
     p.add_argument("--scene-files", nargs="+", metavar="XML",

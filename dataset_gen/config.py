@@ -2,7 +2,8 @@
 
 Data carries its config: re-running ``generate-dataset`` into an existing folder with different
 render settings is refused, and training can check what it reads. The scene count is not part of
-the settings: a dataset can grow.
+the settings: a dataset can grow. A dataset is made in a new or empty folder only: a folder holding
+files but no dataset config is refused, and nothing in it is touched.
 """
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ import json
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
-from imaging.atomic_io import write_text_atomic
+from imaging.atomic_io import TMP_PREFIX, write_text_atomic
 from imaging.errors import DatasetError, SceneError
 from imaging.json_read import parse_json
 from rendering.scene_io import pixel_filter_spec
@@ -119,7 +120,10 @@ def load_config(folder: Path) -> DatasetConfig | None:
 
 
 def open_dataset(folder: Path, wanted: DatasetConfig) -> DatasetConfig:
-    """Create ``folder`` with ``wanted`` settings, or check an existing one has the same."""
+    """Create ``folder`` (new, or empty but for a crash's temporaries) with ``wanted`` settings, or
+    check that the dataset already in it has the same. Raises :class:`DatasetError`, before writing
+    anything, for a path that is not a folder, a dataset of other settings, and a folder holding
+    anything else."""
     wanted.validate()
     if folder.exists() and not folder.is_dir():
         raise DatasetError(f"{folder}: exists and is not a directory")
@@ -130,8 +134,12 @@ def open_dataset(folder: Path, wanted: DatasetConfig) -> DatasetConfig:
             raise DatasetError(f"{folder}: dataset was generated with other settings "
                                f"({'; '.join(diff)}); use another --out folder")
         return existing
-    if folder.exists() and any(p.name in ("manifest.jsonl", "images") for p in folder.iterdir()):
+    held = [p.name for p in folder.iterdir() if not p.name.startswith(TMP_PREFIX)] if folder.exists() else []
+    if any(name in ("manifest.jsonl", "images") for name in held):
         raise DatasetError(f"{folder}: holds dataset files but no {CONFIG_NAME}; refusing to mix")
+    if held:  # someone else's files: a dataset is made in a new or empty folder only
+        raise DatasetError(f"{folder}: is not empty and holds no dataset ({CONFIG_NAME}); "
+                           "use another --out folder (a new or empty one)")
     try:
         folder.mkdir(parents=True, exist_ok=True)
         write_text_atomic(folder / CONFIG_NAME, json.dumps(wanted.to_json(), indent=1) + "\n")

@@ -27,8 +27,11 @@ FLIPS_HELP = ("average the network over 1, 2 or 4 mirrored copies of the image: 
               "network's time for about 0.1 or 0.2 dB (docs/experiments.md)")
 ENERGY_HELP = ("leave the output's local means as the network made them (default: matched to the render's "
                "where they differ by more than its noise; docs/design.md)")
-OVERWRITE_HELP = ("allow an output to replace an input (the same file, a hard link or a symbolic link to it; "
-                  "default: refused)")
+OVERWRITE_HELP = ("replace OUT if it exists, even when it is an input (the same file, a hard link or a symbolic "
+                  "link to it; default: refused)")
+OVERWRITE_FOLDER_HELP = ("write into an --out folder that holds an earlier run's files, replacing them (default: "
+                         "refused before anything runs), even where one is the scene or the reference (the same "
+                         "file or a link to it)")
 SKIP_HELP = ("leave the 64-px cells whose noise (transfer-space standard deviation from the halves) is "
              "below NOISE out of the network; they keep the render, as the noise guard would "
              "(benchmarks/skip.py measures time and change; default: the network everywhere)")
@@ -97,7 +100,7 @@ def add_render_arguments(p: argparse.ArgumentParser, reference_required: bool, g
     p.add_argument("--flips", type=int, choices=tuple(FLIPS), default=1, help=FLIPS_HELP)
     p.add_argument("--no-energy", action="store_true", help=ENERGY_HELP)
     p.add_argument("--device", choices=DEVICES, default="cpu", help=DEVICE_HELP)
-    p.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
+    p.add_argument("--overwrite", action="store_true", help=OVERWRITE_FOLDER_HELP)
 
 
 def render_settings(args: argparse.Namespace) -> RenderSettings:
@@ -123,7 +126,8 @@ def render_parser() -> OneLineParser:
                          help="denoise with OIDN colour-only too, and fail without pyoidn (default: "
                          "compare whenever pyoidn is installed)")
     compare.add_argument("--no-compare", action="store_true", help="do not run OIDN")
-    p.add_argument("--out", help="output folder (default: the scene's name)")
+    p.add_argument("--out", help="output folder (default: the scene's name): created, or an existing folder "
+                   "holding none of this command's files (else --overwrite)")
     p.add_argument("--time-budget", type=positive_float, metavar="SECONDS",
                    help="choose spp (and, with --model auto, the model) to finish within SECONDS")
     p.add_argument("--curves", metavar="TRADEOFF_JSON",
@@ -161,7 +165,8 @@ def denoise_parser() -> OneLineParser:
     p.add_argument("files", nargs="+", metavar="IN OUT",
                    help="input and output image (with --halves: the output only); the output's "
                    "extension picks its format: .exr (the input's layers and parts), .pfm, .hdr, or .png "
-                   "(tonemapped 8-bit); any other is refused, and so is an output that is an input")
+                   "(tonemapped 8-bit); any other is refused; an output that exists or is an input is refused "
+                   "unless --overwrite")
     p.add_argument("--halves", nargs=2, metavar=("A", "B"),
                    help="two independent halves of one render: denoise their mean, with the noise "
                    "guard fed by their difference")
@@ -237,7 +242,8 @@ def tradeoff_parser() -> OneLineParser:
     p.add_argument("--repeat", type=positive_int, default=3, help="timing repeats, median kept (3)")
     p.add_argument("--metric", choices=["relmse", "psnr", "flip"], default="relmse",
                    help="error of the plot, frontier and saving table (relmse)")
-    p.add_argument("--out", help="output folder (default: <scene name>-tradeoff)")
+    p.add_argument("--out", help="output folder (default: <scene name>-tradeoff): created, or an existing folder "
+                   "holding none of this command's files (else --overwrite)")
     p.add_argument("--quiet", action="store_true", help="no progress bar and no table")
     return p
 

@@ -8,7 +8,8 @@ from the halves (:func:`rendering.render.half_variance`) or a variance layer, go
 denoiser, which applies the noise guard with it. The output replaces the colour layer's channels
 and keeps every other layer, part and attribute (``rgb_only``: a plain RGB EXR); a ``.pfm``,
 ``.hdr`` or ``.png`` (tonemapped) output path writes that format instead, any other extension is
-refused, and so is an output that is one of the inputs (:mod:`imaging.output_paths`).
+refused, and so is an output that is one of the inputs or, unless ``overwrite``, a file that exists
+(:mod:`imaging.output_paths`).
 """
 from __future__ import annotations
 
@@ -27,7 +28,7 @@ from imaging.exr_layers import (ALBEDO_WORDS, NORMAL_WORDS, VARIANCE_WORDS, ExrF
                                  describe_layers, find_aux_layer, pick_color_layer, read_exr_file,
                                  replace_layer, write_exr_file)
 from imaging.metrics import all_metrics
-from imaging.output_paths import check_not_inputs, output_format
+from imaging.output_paths import check_new_file, check_not_inputs, output_format
 from imaging.png import save_png
 from rendering.render import half_variance
 from denoise.denoiser import Denoiser
@@ -168,6 +169,7 @@ def denoise_file(cfg: DenoiseFileConfig) -> dict[str, Any]:
         raise DenoiserError("two halves give the variance: --variance-layer is for a single input")
     output_format(cfg.output)
     check_not_inputs([cfg.output], [*cfg.inputs, cfg.reference], cfg.overwrite)
+    check_new_file(cfg.output, cfg.overwrite)
     for path in [*cfg.inputs, *([cfg.reference] if cfg.reference else [])]:
         check_image_header(path)  # before the models load: a file that lies fails at once
     # one image a process: huge pages would only slow its one call (denoise.allocator)

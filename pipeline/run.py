@@ -1,8 +1,10 @@
 """``render-and-denoise``'s core: render a scene, denoise it, compare, write files and a report.
 
 Outputs in ``out``: noisy.exr, denoised.exr (+ oidn.exr, reference.exr), a PNG preview of each,
-comparison.png, metrics.json (written last: a run without it did not finish; a re-run into the
-same folder deletes the old one first), report.html and config.json (the run's settings).
+comparison.png, metrics.json (written last: a run without it did not finish), report.html and
+config.json (the run's settings). A folder already holding one of these files is refused before
+anything runs (:func:`imaging.output_paths.check_output_folder`) unless ``overwrite``; a run with
+it deletes the earlier run's metrics.json and report.html first, and replaces each file it writes.
 Writing them, the metrics and the report go a block of rows at a time (:func:`output_bytes` of
 the ``--max-memory-mb`` budget), so their scratch memory does not grow with the image.
 """
@@ -22,6 +24,7 @@ from imaging.blocks import DEFAULT_BLOCK_BYTES
 from imaging.errors import DenoiserError
 from imaging.exr import write_exr
 from imaging.metrics import percentile
+from imaging.output_paths import check_output_folder
 from imaging.peak_rss import PeakRSS
 from rendering.render import RenderResult
 from pipeline.budget import BudgetPlan, budget_candidates, plan_run
@@ -63,9 +66,11 @@ def output_bytes(cfg: RenderSettings) -> float:
     return min(DEFAULT_BLOCK_BYTES, cfg.max_memory_mb * 2**20 / 8)
 
 
-# every file run() writes into (or removes from) its output folder
-OUTPUT_NAMES = ("config.json", "metrics.json", "report.html", "comparison.png", ".write-test",
+# every file of a run in its output folder; with the writability probe, every file run() writes into
+# (or removes from) it
+RESULT_NAMES = ("config.json", "metrics.json", "report.html", "comparison.png",
                 *(f"{image}.{ext}" for image in ("noisy", "denoised", "oidn", "reference") for ext in ("exr", "png")))
+OUTPUT_NAMES = (*RESULT_NAMES, ".write-test")
 
 
 def _check_out(out: Path) -> None:
@@ -79,8 +84,8 @@ def _check_out(out: Path) -> None:
     try:
         probe.write_bytes(b"")
         probe.unlink()
-        # A re-run into the folder of an earlier run: its completion marker (and the report that
-        # goes with it) must not sit beside new, possibly unfinished outputs; nor leftovers of a crash.
+        # An earlier run's folder (--overwrite): its completion marker (and the report that goes
+        # with it) must not sit beside new, possibly unfinished outputs; nor leftovers of a crash.
         for stale in [out / "metrics.json", out / "report.html", *out.glob(f"{TMP_PREFIX}*")]:
             stale.unlink(missing_ok=True)
     except OSError as exc:
@@ -126,6 +131,7 @@ def _start(cfg: RunConfig, log: Callable[[str], None]) -> _Run:
     (everything that can fail before the render); write config.json."""
     cfg.render.check()
     cfg.render.check_outputs(cfg.out, OUTPUT_NAMES)
+    check_output_folder(cfg.out, RESULT_NAMES, cfg.render.overwrite)
     started = time.perf_counter()
     candidates = budget_candidates(cfg.model, cfg.render) if cfg.time_budget is not None else {}
     denoiser = next(iter(candidates.values())) if candidates else make_denoiser(cfg.model, cfg.render)

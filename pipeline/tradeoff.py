@@ -6,7 +6,9 @@ asked — runs ``repeat`` times on it (median time). Renders, denoisers and scor
 ``render-and-denoise`` (:mod:`pipeline.evaluation`: two halves, noise input and guard unless
 ``--no-noise-guard``; PSNR, relMSE, FLIP). Kernels are compiled and the networks warmed up
 before anything is timed. Outputs (:mod:`pipeline.tradeoff_report`): ``tradeoff.json``,
-``tradeoff.csv``, ``tradeoff.png`` and ``config.json`` (this run's :class:`TradeoffConfig`).
+``tradeoff.csv``, ``tradeoff.png``, ``report.html`` and ``config.json`` (this run's
+:class:`TradeoffConfig`). A folder already holding one of them is refused before anything runs
+(:func:`imaging.output_paths.check_output_folder`) unless ``overwrite``.
 """
 from __future__ import annotations
 
@@ -18,6 +20,7 @@ from typing import Any
 
 from imaging.atomic_io import json_safe, write_json_atomic
 from imaging.errors import DenoiserError
+from imaging.output_paths import check_output_folder
 from console.progress import ProgressBar, ProgressFactory
 from rendering.render import RenderResult
 from denoise.denoiser import Denoiser, select
@@ -202,12 +205,13 @@ def analyse(points: list[Point], info: dict[str, Any], metric: str) -> dict[str,
     return result
 
 
-OUTPUT_NAMES = ("config.json", "tradeoff.json", "tradeoff.csv", "tradeoff.png", "report.html", ".write-test")
+RESULT_NAMES = ("config.json", "tradeoff.json", "tradeoff.csv", "tradeoff.png", "report.html")
+OUTPUT_NAMES = (*RESULT_NAMES, ".write-test")  # with the writability probe
 
 
 def _prepare_out(out: Path) -> None:
     """Create ``out`` and check it is writable; drop an earlier run's ``tradeoff.json`` (the
-    completion marker) so that it never sits beside new, unfinished outputs."""
+    completion marker; there with ``overwrite``) so that it never sits beside new, unfinished outputs."""
     try:
         out.mkdir(parents=True, exist_ok=True)
         probe = out / ".write-test"
@@ -226,6 +230,7 @@ def run_tradeoff(cfg: TradeoffConfig, progress: ProgressFactory | None = None) -
     out = Path(cfg.out)
     cfg.check()
     cfg.render.check_outputs(out, OUTPUT_NAMES)
+    check_output_folder(out, RESULT_NAMES, cfg.render.overwrite)
     _prepare_out(out)
     write_json_atomic(out / "config.json", asdict(cfg))
     result = measure(cfg, progress)

@@ -119,7 +119,7 @@ def test_kill_9_during_render_and_denoise_then_rerun(tmp_path: Path) -> None:
     # A finished earlier run in the same folder, with other settings.
     assert render_main([*base, "--spp", "2"]) == 0
     assert json.loads((out / "metrics.json").read_text())["spp"] == 2
-    args = [*base, "--spp", "16", "--reference-spp", "2048"]
+    args = [*base, "--spp", "16", "--reference-spp", "2048", "--overwrite"]  # into the earlier run's folder
 
     def started() -> bool:
         try:

@@ -14,7 +14,7 @@ import pytest
 
 from dataset_gen import jobs
 from dataset_gen.cli import main as cli_main
-from dataset_gen.config import DatasetConfig
+from dataset_gen.config import DatasetConfig, open_dataset
 from dataset_gen.generate import generate_dataset
 from dataset_gen.manifest import MANIFEST_NAME, append_record, read_records, repair
 from imaging.atomic_io import TMP_PREFIX
@@ -152,6 +152,26 @@ def test_cli_errors_are_one_line(tmp_path: Path, capsys) -> None:
     assert cli_main(["--scenes", "1", "--out", str(blocker), *TINY_ARGS]) == 1
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and "not a directory" in err
+
+
+def test_cli_refuses_a_folder_that_holds_no_dataset_and_touches_nothing(tmp_path: Path, capsys) -> None:
+    """A folder of someone else's files is refused in one line, nothing in it written, moved or removed;
+    a folder empty but for a crash's temporary is taken (open_dataset writes only dataset.json)."""
+    mine = tmp_path / "mine"
+    (mine / "sub").mkdir(parents=True)
+    (mine / "notes.txt").write_text("mine")
+    (mine / "sub" / f"{TMP_PREFIX}keep").write_text("mine too")
+    before = sorted((p.relative_to(mine), p.stat().st_mtime_ns, p.is_file() and p.read_bytes())
+                    for p in mine.rglob("*"))
+    assert cli_main(["--scenes", "1", "--out", str(mine), *TINY_ARGS]) == 1
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and f"{mine}: is not empty and holds no dataset (dataset.json)" in err
+    assert sorted((p.relative_to(mine), p.stat().st_mtime_ns, p.is_file() and p.read_bytes())
+                  for p in mine.rglob("*")) == before
+    crashed = tmp_path / "crashed"
+    crashed.mkdir()
+    (crashed / f"{TMP_PREFIX}dataset.json").write_text("{")
+    assert open_dataset(crashed, TINY) == TINY and (crashed / "dataset.json").exists()
 
 
 def test_cli_writes_dataset_and_preview(tmp_path: Path, capsys) -> None:

@@ -106,10 +106,10 @@ def test_variance_layer_flag(tmp_path: Path, rng: np.random.Generator, ckpt: Pat
     OpenEXR.File({}, dict(channels)).write(str(tmp_path / "in.exr"))
     assert run(capsys, str(tmp_path / "in.exr"), str(tmp_path / "o.exr"), "--model", str(ckpt))[
         "noise_guard"] is None  # no layer called 'variance'
-    printed = run(capsys, str(tmp_path / "in.exr"), str(tmp_path / "o.exr"), "--model", str(ckpt),
+    printed = run(capsys, str(tmp_path / "in.exr"), str(tmp_path / "o2.exr"), "--model", str(ckpt),
                   "--variance-layer", "var2", "--spp", "8")
     assert printed["noise_guard"]["variance"] == "var2" and printed["noise_guard"]["strength"] == strength_for(8)
-    assert denoise_main([str(tmp_path / "in.exr"), str(tmp_path / "o.exr"), "--model", str(ckpt),
+    assert denoise_main([str(tmp_path / "in.exr"), str(tmp_path / "o3.exr"), "--model", str(ckpt),
                          "--variance-layer", "nope"]) == 1
     assert "no variance layer named 'nope'" in capsys.readouterr().err
 

@@ -28,7 +28,7 @@ from PIL import Image
 from imaging.exr import read_exr, write_exr
 from imaging.png import PNG_MAGIC, to_display
 from pipeline.cli import denoise_main, main as render_main, tradeoff_main
-from tests.test_bad_input import call, one_line
+from tests.test_bad_input import call, no_temporaries, one_line
 from tests.test_denoiser import write_tiny_checkpoint
 from training.cli import main as train_main
 from training.synthetic import write_synthetic_dataset
@@ -163,6 +163,27 @@ def test_overwrite_replaces_the_input_when_asked(lies: Path, work: Path, capfd: 
     capfd.readouterr()
     assert "tiny" in read_exr(work / "in.exr").metadata["denoised_by"]
     assert read_exr(work / "in.exr").rgb.shape == noisy.shape
+
+
+def test_denoise_refuses_an_existing_output_unless_asked(lies: Path, work: Path, capfd: pytest.CaptureFixture) -> None:
+    """The second run into the same output is refused, the first run's file kept; --overwrite replaces it.
+    A folder where the output goes is refused even with --overwrite."""
+    assert _denoise(lies, str(work / "in.exr"), str(work / "d1.exr")) == 0
+    capfd.readouterr()
+    first = digest(work / "d1.exr")
+    one_line(capfd, _denoise(lies, str(work / "in.exr"), str(work / "d1.exr")),
+             "d1.exr: exists: refusing to replace it", "--overwrite")
+    assert digest(work / "d1.exr") == first and no_temporaries(work)
+    (work / "mine.png").write_bytes(b"not an output of ours")
+    one_line(capfd, _denoise(lies, str(work / "in.exr"), str(work / "mine.png")), "mine.png: exists", "--overwrite")
+    assert (work / "mine.png").read_bytes() == b"not an output of ours"
+    assert _denoise(lies, str(work / "in.exr"), str(work / "mine.png"), "--overwrite") == 0
+    capfd.readouterr()
+    assert (work / "mine.png").read_bytes().startswith(PNG_MAGIC)
+    (work / "dir.exr").mkdir()
+    for extra in ([], ["--overwrite"]):
+        one_line(capfd, _denoise(lies, str(work / "in.exr"), str(work / "dir.exr"), *extra), "dir.exr: is a folder")
+    assert not list((work / "dir.exr").iterdir())
 
 
 def test_outputs_are_the_format_their_name_says(lies: Path, work: Path, capfd: pytest.CaptureFixture) -> None:

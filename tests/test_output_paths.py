@@ -1,5 +1,5 @@
-"""Outputs never land on inputs (same path, hard link, symbolic link) unless asked to, and an image
-output's extension names the format written."""
+"""Outputs never land on inputs (same path, hard link, symbolic link) nor on existing outputs unless
+asked to, and an image output's extension names the format written."""
 from __future__ import annotations
 
 import os
@@ -7,7 +7,8 @@ from pathlib import Path
 
 import pytest
 
-from imaging.output_paths import OutputPathError, check_not_inputs, output_format
+from imaging.output_paths import (OutputPathError, check_new_file, check_not_inputs, check_output_folder,
+                                  output_format)
 
 
 @pytest.mark.parametrize("name, fmt", [("a.exr", "exr"), ("a.EXR", "exr"), ("a.pfm", "pfm"), ("a.hdr", "hdr"),
@@ -68,3 +69,35 @@ def test_a_symbolic_link_loop_is_one_line(tmp_path: Path, source: Path) -> None:
     (tmp_path / "b.exr").symlink_to(tmp_path / "a.exr")
     with pytest.raises(OutputPathError, match=r"a.exr: a symbolic link loop"):
         check_not_inputs([tmp_path / "a.exr"], [source])
+
+
+def test_an_existing_output_file_passes_only_with_overwrite(tmp_path: Path, source: Path) -> None:
+    (tmp_path / "dangling.exr").symlink_to(tmp_path / "gone.exr")
+    check_new_file(tmp_path / "new.exr")
+    for path in (source, tmp_path / "dangling.exr"):  # a link counts, dangling or not
+        with pytest.raises(OutputPathError, match=f"{path.name}: exists: refusing to replace it "
+                                                  r"\(give --overwrite to replace it\)"):
+            check_new_file(path)
+        check_new_file(path, overwrite=True)
+    for overwrite in (False, True):
+        with pytest.raises(OutputPathError, match=f"{tmp_path.name}: is a folder"):
+            check_new_file(tmp_path, overwrite)
+
+
+def test_an_output_folder_holding_a_written_file_passes_only_with_overwrite(tmp_path: Path, source: Path) -> None:
+    names = ("a.json", "b.exr", "c.png", "d.html", "e.csv")
+    check_output_folder(tmp_path / "new", names)  # does not exist yet
+    check_output_folder(tmp_path, names)  # holds in.exr, none of the names
+    (tmp_path / "b.exr").write_bytes(b"")
+    (tmp_path / "d.html").symlink_to(tmp_path / "gone.html")
+    with pytest.raises(OutputPathError, match=r": holds an earlier run's files \(b.exr, d.html\): refusing to replace "
+                                              r"them \(give --overwrite to replace them, or choose another --out\)"):
+        check_output_folder(tmp_path, names)
+    for name in ("a.json", "c.png", "e.csv"):
+        (tmp_path / name).write_bytes(b"")
+    with pytest.raises(OutputPathError, match=r"\(a.json, b.exr, c.png and 2 more\)"):
+        check_output_folder(tmp_path, names)
+    check_output_folder(tmp_path, names, overwrite=True)
+    for overwrite in (False, True):  # a file where the folder goes: always
+        with pytest.raises(OutputPathError, match="in.exr: exists and is not a folder; choose another --out"):
+            check_output_folder(source, names, overwrite)

@@ -11,6 +11,7 @@ import pytest
 
 from imaging.exr import read_exr, write_exr
 from pipeline.cli import denoise_main, main
+from pipeline.evaluation import RenderSettings
 from denoise.denoiser import Denoiser
 from tests.test_denoiser import write_tiny_checkpoint
 
@@ -74,6 +75,37 @@ def test_reference_file_and_no_reference(tmp_path: Path, demo_run: Path, ckpt: P
     assert set(metrics["stats"]) == {"noisy", "denoised"} and not (bare / "oidn.exr").exists()
     assert metrics["oidn"] == {"compared": False, "note": "OIDN not compared (--no-compare)"}
     assert json.loads((bare / "config.json").read_text())["compare_oidn"] is False
+
+
+def test_an_earlier_run_is_refused_before_rendering_unless_overwrite(tmp_path: Path, ckpt: Path,
+                                                                    capsys: pytest.CaptureFixture,
+                                                                    monkeypatch: pytest.MonkeyPatch) -> None:
+    """A second run into a run's folder is refused in one line before the scene loads, every file
+    kept; --overwrite runs and replaces them. A folder of other files is used; a file is refused always."""
+    out = tmp_path / "o"
+    base = [str(DEMO), "--res", "16", "16", "--model", str(ckpt), "--no-compare", "--quiet"]
+    assert main([*base, "--spp", "1", "--out", str(out)]) == 0
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    loads: list[str] = []
+    monkeypatch.setattr(RenderSettings, "load", lambda self, aovs=(): loads.append(self.scene))
+    _one_line_error(capsys, main([*base, "--spp", "2", "--out", str(out)]),
+                    f"{out}: holds an earlier run's files (config.json, metrics.json, report.html and", "--overwrite")
+    assert not loads and {p.name: p.read_bytes() for p in out.iterdir()} == before
+    monkeypatch.undo()
+    assert main([*base, "--spp", "2", "--out", str(out), "--overwrite"]) == 0
+    assert json.loads((out / "metrics.json").read_text())["spp"] == 2
+    assert read_exr(out / "noisy.exr").metadata["spp"] == 2
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("mine")
+    assert main([*base, "--spp", "1", "--out", str(mine)]) == 0
+    assert (mine / "notes.txt").read_text() == "mine" and (mine / "metrics.json").exists()
+    blocker = tmp_path / "a_file"
+    blocker.write_text("mine")
+    for extra in ([], ["--overwrite"]):
+        _one_line_error(capsys, main([*base, "--spp", "1", "--out", str(blocker), *extra]),
+                        "a_file: exists and is not a folder")
+    assert blocker.read_text() == "mine"
 
 
 def test_an_ensemble_runs_its_low_spp_member_only_at_low_spp(tmp_path: Path, ckpt: Path) -> None:

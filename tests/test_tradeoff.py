@@ -13,6 +13,7 @@ from denoise import denoiser
 from pipeline.cli import tradeoff_main
 from pipeline.evaluation import RenderSettings
 from denoise.oidn import oidn_available
+from pipeline import tradeoff
 from pipeline.tradeoff import Point, TradeoffConfig, analyse, model_labels
 from pipeline.tradeoff_report import recommendation, recommendation_line
 from tests.test_denoiser import write_tiny_checkpoint
@@ -59,6 +60,43 @@ def test_tradeoff_end_to_end(tmp_path: Path, ckpts: list[Path], capsys: pytest.C
     assert "equal-quality saving" in printed and "tiny-2" in printed
     assert "recommended: " in printed and "Recommended" in report
     assert f"report: {out / 'report.html'}" in printed
+
+
+def test_an_earlier_run_is_refused_before_rendering_unless_overwrite(tmp_path: Path, ckpts: list[Path],
+                                                                    capsys: pytest.CaptureFixture,
+                                                                    monkeypatch: pytest.MonkeyPatch) -> None:
+    """A second run into a run's folder is refused in one line before any model or scene loads, every
+    file kept; --overwrite measures again and replaces them. An --out that is a file is refused always."""
+    out = tmp_path / "t"
+    base = [str(DEMO), "--res", "8", "8", "--reference-spp", "2", "--repeat", "1", "--models", str(ckpts[0]),
+            "--no-compare", "--quiet"]
+    assert tradeoff_main([*base, "--spp", "1", "--out", str(out)]) == 0
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    loads: list[str] = []
+    monkeypatch.setattr(RenderSettings, "load", lambda self, aovs=(): loads.append(self.scene))
+    monkeypatch.setattr(tradeoff, "model_labels", lambda models: loads.append("models"))
+    assert tradeoff_main([*base, "--spp", "2", "--out", str(out)]) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and f"{out}: holds an earlier run's files (config.json, tradeoff.json, " in err
+    assert "--overwrite" in err and not loads and {p.name: p.read_bytes() for p in out.iterdir()} == before
+    monkeypatch.undo()
+
+    def stop(*args: object) -> None:
+        raise DenoiserError("stopped")
+
+    monkeypatch.setattr(tradeoff, "measure", stop)  # with --overwrite the old completion marker goes first
+    assert tradeoff_main([*base, "--spp", "2", "--out", str(out), "--overwrite"]) == 1
+    assert "stopped" in capsys.readouterr().err and not (out / "tradeoff.json").exists()
+    monkeypatch.undo()
+    assert tradeoff_main([*base, "--spp", "2", "--out", str(out), "--overwrite"]) == 0
+    assert {p["spp"] for p in json.loads((out / "tradeoff.json").read_text())["points"]} == {2}
+    blocker = tmp_path / "a_file"
+    blocker.write_text("mine")
+    for extra in ([], ["--overwrite"]):
+        assert tradeoff_main([*base, "--spp", "1", "--out", str(blocker), *extra]) == 1
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and "a_file: exists and is not a folder" in err
+    assert blocker.read_text() == "mine"
 
 
 def test_analyse_synthetic_points() -> None:
