@@ -173,15 +173,16 @@ class Selection:
 
 def training_line(card: CheckpointCard) -> str:
     """How a checkpoint was trained, in words, from its card's ``training`` record: a recipe run
-    (from nothing, every stage recording) gives the hours and hardware of the whole lineage; any
-    other file its own run's, and what it was warm-started from."""
+    (from nothing, every stage recording) gives the hours and hardware of the whole lineage up to
+    this file (each stage to the best step the next one started from); any other file its own
+    run's, and what it was warm-started from."""
     rec = card.training
     hours = rec.get("hours") or {}
     gpu = f", {float(hours['gpu']):g} GPU-hours" if float(hours.get("gpu") or 0) else ""
     where = ", ".join(rec.get("hardware") or [])
     # "finetune": training.recipe.FINETUNE, a stage started from a given file (model/ sits below training/)
     if hours and rec.get("recipe_stage") and rec["recipe_stage"] != "finetune":
-        return (f"trained: {float(hours.get('cpu') or 0):g} CPU-hours{gpu} in all, from nothing, on "
+        return (f"trained: {float(hours.get('cpu') or 0):g} CPU-hours{gpu} from nothing to this file, on "
                 f"{where or 'hardware not recorded'}: stage {rec['recipe_stage']} of `train --recipe {card.recipe}`")
     steps = f"{rec['steps']:,} steps, " if rec.get("steps") else ""
     minutes = f"{rec['cpu_minutes']:g} CPU-minutes" if rec.get("cpu_minutes") else "CPU time not recorded"
