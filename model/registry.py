@@ -224,7 +224,8 @@ def split_range(member: str) -> tuple[str, int, int]:
 class Registry:
     """The manifest, read: ``entries`` by name, ``checkpoints`` by name, ``retired`` (names that
     checkpoints had before, -> a registry checkpoint or, when no longer shipped, the commit that
-    holds the file), the ``default`` entry, and the ``folder`` the files are in."""
+    holds the file), the ``default`` entry, the ``folder`` the files are in, and the ``license``
+    the weights are under (an SPDX name: the project's, LICENSE)."""
 
     default: str
     entries: Mapping[str, Entry]
@@ -232,6 +233,7 @@ class Registry:
     retired: Mapping[str, str]
     folder: Path
     sources: Mapping[str, Any] = field(default_factory=dict)
+    license: str = ""
 
     @classmethod
     def load(cls, path: Path = MANIFEST) -> Registry:
@@ -251,7 +253,7 @@ class Registry:
                        for name, e in data["entries"].items()}
             registry = cls(default=data["default"], entries=entries, checkpoints=checkpoints,
                            retired=dict(data.get("retired", {})), folder=Path(path).parent,
-                           sources=data.get("sources", {}))
+                           sources=data.get("sources", {}), license=str(data.get("license", "")))
         except OSError as exc:
             raise RegistryError(f"{path}: cannot read the model registry ({exc.strerror or exc})") from None
         except (ValueError, KeyError, TypeError, IndexError, AttributeError) as exc:
@@ -394,6 +396,8 @@ class Registry:
         for key in ("scoreboard", "inference"):
             if key in self.sources:
                 lines.append(f"  figures: {self.sources[key]}")
+        if self.license:
+            lines.append(f"  licence: the weights are under {self.license}, as the code (the project's LICENSE file)")
         return "\n".join(line for line in lines if line)
 
 
