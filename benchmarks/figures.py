@@ -117,9 +117,10 @@ def plot_tradeoff(points: dict[str, dict[str, Any]], out: Path = TRADEOFF) -> No
 def main(argv: list[str] | None = None) -> int:
     p = OneLineParser(prog="python -m benchmarks.figures", description=__doc__.split("\n")[0])
     p.add_argument("which", nargs="?", choices=("strip", "tradeoff", "all"), default="all")
-    p.add_argument("--scene", default="matpreview_wood_texture", help="eval scene of the strip")
+    p.add_argument("--scene", default="bitterli_veach_mis",  # CC0: the picture may ship under our licence
+                   help="eval scene of the strip")
     p.add_argument("--spp", type=positive_int, default=16)
-    p.add_argument("--crop", type=int_list, default=(72, 64, 96), help="X,Y,SIZE of the strip's crop")
+    p.add_argument("--crop", type=int_list, default=(80, 40, 96), help="X,Y,SIZE of the strip's crop")
     args = p.parse_args(sys.argv[1:] if argv is None else argv)
     if len(args.crop) != 3:
         p.error("--crop takes X,Y,SIZE")

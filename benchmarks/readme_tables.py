@@ -407,10 +407,38 @@ def presets(results: Results) -> list[str]:
                      _f(best["step"]), _f(log[-1]["step"]),
                      _f(train_s / 60 if train_s else None, 1), str(best["images"]), _f(best["psnr"])])
     note = ("Validation: whole images of each run's held-out scenes (`images`: their count; the sets differ "
-            "between runs); minutes: optimisation time of the last run to its best step.")
+            "between runs); wall minutes: the last run's optimisation to its best step, by the clock (its CPU "
+            "time: the recipes' table in docs/training.md).")
     return [caption(TRAIN_COMMAND, "experiments/training/NAME/log.jsonl, train_config.json", None, note), "",
-            *_table(["checkpoint", "network", "best step", "steps run", "minutes to best", "images",
+            *_table(["checkpoint", "network", "best step", "steps run", "wall minutes to best", "images",
                      "val PSNR dB"], rows)]
+
+
+def recipe_runs(results: Results) -> list[str]:
+    """What each shipped recipe's stages took and the two totals, from the stages' logs
+    (:mod:`benchmarks.training_records`)."""
+    from benchmarks.training_records import recipe_record
+    from training.recipe import load_recipe
+
+    stages, totals = [], []
+    for name in TRAINED:
+        record = recipe_record(load_recipe(name), results.root)
+        for i, stage in enumerate(record.recipe.stages):
+            run = record.stages[stage.name]
+            start = f"stage {stage.init_from}" if stage.init_from else "scratch"
+            stages.append([f"`{name}`" if i == 0 else "", stage.name, start,
+                           *((_f(run.steps), _f(run.best_step), _f(run.best_psnr), _f(run.cpu_min_to_best, 1),
+                              _f(run.cpu_min, 1)) if run else ("-",) * 5)])
+        totals.append([f"`{name}`", _f(record.hours_to_file), _f(record.hours_whole_run)])
+    note = ("Held-out dB: the best validation PSNR, at the best step. CPU-min to best: the stage's CPU time up "
+            "to its best step, the checkpoint the next stage starts from (or the shipped file); in all: to its "
+            "last step. A stage another recipe's run trained is read from that run's log. CPU-hours to the "
+            "shipped file: the stages that lead to it, each to its best step (its card's figure, "
+            "`denoise --list-models`); the whole run: every stage to its last step, what `train --recipe NAME` takes.")
+    return [caption(TRAIN_COMMAND, "experiments/training/NAME/log.jsonl, NAME/stage-STAGE/log.jsonl", None, note),
+            "", *_table(["recipe", "stage", "starts from", "steps run", "best step", "held-out dB", "CPU-min to best",
+                         "CPU-min in all"], stages, right=3),
+            "", *_table(["recipe", "CPU-hours to the shipped file", "CPU-hours of the whole run"], totals)]
 
 
 def validation(results: Results) -> list[str]:
@@ -593,7 +621,7 @@ def mutation(results: Results) -> list[str]:
 
 TABLES: dict[str, Callable[[Results], list[str]]] = {
     f.__name__: f for f in (models, strip_caption, unknown_spp, image_noise, denoise_process, scoreboard, scoreboard_scenes, noise_guard, noise_guard_settings, energy, ensemble, inference,
-                            multiscale_presets, roofline, budget, presets, validation, val_scenes, trend, ablations,
+                            multiscale_presets, roofline, budget, presets, recipe_runs, validation, val_scenes, trend, ablations,
                             train_throughput, scaleout, extremes, render_memory, denoise_memory, denoise_tile_memory,
                             fuzz, mutation)}
 

@@ -388,14 +388,16 @@ class Denoiser:
 
     def denoise_array(self, rgb: np.ndarray, albedo: np.ndarray | None = None,
                       normals: np.ndarray | None = None, variance: np.ndarray | None = None,
-                      strength: float = DEFAULT_STRENGTH, keep_network: bool = False,
+                      strength: float | None = None, keep_network: bool = False,
                       spp: int | None = None, pixel_filter: str | None = None) -> DenoiseResult:
         """Denoise HxWx3 linear radiance (any float dtype) with :func:`denoise.chain.denoise_image`.
 
         ``variance``: HxWx3 variance of ``rgb``'s Monte Carlo estimate (a render made of two
         halves, :func:`rendering.render.render_loaded`); given, the output is blended with the
         render where the render's noise does not explain the change (:mod:`denoise.noise_guard`).
-        ``keep_network``: also return the network's output before that blend (``network``).
+        ``strength``: the guard's strength; None: the one for the render's spp
+        (:func:`denoise.noise_guard.strength_for`, as :meth:`denoise_render` and ``render-and-denoise``
+        use), 1 where the spp is unknown. ``keep_network``: also return the network's output before that blend (``network``).
         ``spp``: the render's samples per pixel, where known: only the networks meant for such
         renders run (:meth:`active`; unknown: the entry's choice for that case, named in the
         result's ``notes``). The output's local means are then matched to the render's (``energy``,
@@ -449,6 +451,8 @@ class Denoiser:
             network = out.copy() if variance is not None or self.energy is not None else out
         weight = weights = None
         if variance is not None:
+            if strength is None:
+                strength = strength_for(spp) if spp is not None else DEFAULT_STRENGTH
             weights = np.empty((height, width, 1), np.float32)
             guard_in_place(rgb, out, variance, weights, self.max_bytes, strength=strength, workers=workers)
             weight = float(weights.mean())
@@ -486,10 +490,10 @@ class Denoiser:
     def denoise_render(self, render: RenderResult, keep_network: bool = False) -> DenoiseResult:
         """Denoise a render of :mod:`rendering.render` with what it carries: its AOVs and, for a
         render made in two halves, its variance (the model's noise input, if it has one) and the
-        noise guard at the strength for its spp. ``keep_network`` as in :meth:`denoise_array`."""
+        noise guard at the strength for its spp (:meth:`denoise_array` with ``variance=render.variance,
+        spp=render.spp`` gives the same image). ``keep_network`` as in :meth:`denoise_array`."""
         return self.denoise_array(render.rgb, render.aovs.get("albedo"), render.aovs.get("sh_normal"),
-                                  render.variance, strength_for(render.spp), keep_network, render.spp,
-                                  render.pixel_filter)
+                                  render.variance, None, keep_network, render.spp, render.pixel_filter)
 
     def __call__(self, noisy: Any, albedo: Any = None, normals: Any = None, spp: int | None = None) -> Any:
         """Denoise a numpy array, torch tensor, ``mi.TensorXf`` or ``mi.Bitmap`` (HxWx3, or HxWx4

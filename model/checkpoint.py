@@ -287,6 +287,14 @@ def strip_optimizer(src: str | Path, dst: str | Path) -> None:
     _write(Path(dst), tensors, {**ckpt.header, "optimizer": None})
 
 
+def replace_meta(path: str | Path, meta: dict[str, Any]) -> None:
+    """Rewrite ``path`` with ``meta`` as its header's card record (:func:`checkpoint_meta`),
+    atomically: every tensor and every other header field as they were (a file written before
+    checkpoints carried the record gets it without its weights changing)."""
+    ckpt = read_checkpoint(path)
+    _write(Path(path), ckpt.tensors, {**ckpt.header, "meta": dict(meta)})
+
+
 def compact_optimizer(src: str | Path, dst: str | Path) -> None:
     """Write ``src`` to ``dst`` with the optimiser's floating-point state (Adam's moments) in
     bfloat16, everything else as it was, atomically: a resumable copy small enough to commit (a

@@ -173,15 +173,16 @@ class Selection:
 
 def training_line(card: CheckpointCard) -> str:
     """How a checkpoint was trained, in words, from its card's ``training`` record: a recipe run
-    (from nothing, every stage recording) gives the hours and hardware of the whole lineage; any
-    other file its own run's, and what it was warm-started from."""
+    (from nothing, every stage recording) gives the hours and hardware of the whole lineage up to
+    this file (each stage to the best step the next one started from); any other file its own
+    run's, and what it was warm-started from."""
     rec = card.training
     hours = rec.get("hours") or {}
     gpu = f", {float(hours['gpu']):g} GPU-hours" if float(hours.get("gpu") or 0) else ""
     where = ", ".join(rec.get("hardware") or [])
     # "finetune": training.recipe.FINETUNE, a stage started from a given file (model/ sits below training/)
     if hours and rec.get("recipe_stage") and rec["recipe_stage"] != "finetune":
-        return (f"trained: {float(hours.get('cpu') or 0):g} CPU-hours{gpu} in all, from nothing, on "
+        return (f"trained: {float(hours.get('cpu') or 0):g} CPU-hours{gpu} from nothing to this file, on "
                 f"{where or 'hardware not recorded'}: stage {rec['recipe_stage']} of `train --recipe {card.recipe}`")
     steps = f"{rec['steps']:,} steps, " if rec.get("steps") else ""
     minutes = f"{rec['cpu_minutes']:g} CPU-minutes" if rec.get("cpu_minutes") else "CPU time not recorded"
@@ -223,7 +224,8 @@ def split_range(member: str) -> tuple[str, int, int]:
 class Registry:
     """The manifest, read: ``entries`` by name, ``checkpoints`` by name, ``retired`` (names that
     checkpoints had before, -> a registry checkpoint or, when no longer shipped, the commit that
-    holds the file), the ``default`` entry, and the ``folder`` the files are in."""
+    holds the file), the ``default`` entry, the ``folder`` the files are in, and the ``license``
+    the weights are under (an SPDX name: the project's, LICENSE)."""
 
     default: str
     entries: Mapping[str, Entry]
@@ -231,6 +233,7 @@ class Registry:
     retired: Mapping[str, str]
     folder: Path
     sources: Mapping[str, Any] = field(default_factory=dict)
+    license: str = ""
 
     @classmethod
     def load(cls, path: Path = MANIFEST) -> Registry:
@@ -250,7 +253,7 @@ class Registry:
                        for name, e in data["entries"].items()}
             registry = cls(default=data["default"], entries=entries, checkpoints=checkpoints,
                            retired=dict(data.get("retired", {})), folder=Path(path).parent,
-                           sources=data.get("sources", {}))
+                           sources=data.get("sources", {}), license=str(data.get("license", "")))
         except OSError as exc:
             raise RegistryError(f"{path}: cannot read the model registry ({exc.strerror or exc})") from None
         except (ValueError, KeyError, TypeError, IndexError, AttributeError) as exc:
@@ -393,6 +396,8 @@ class Registry:
         for key in ("scoreboard", "inference"):
             if key in self.sources:
                 lines.append(f"  figures: {self.sources[key]}")
+        if self.license:
+            lines.append(f"  licence: the weights are under {self.license}, as the code (the project's LICENSE file)")
         return "\n".join(line for line in lines if line)
 
 

@@ -24,6 +24,9 @@ from scenes.xml_export import write_scene
 EXAMPLES_DIR = Path(__file__).resolve().parent / "examples"
 DEMO_NAME = "demo.xml"
 REFERENCE_NAME = "demo_reference.exr"
+# The shipped files by absolute path, wherever the package is installed (the README's snippet uses it)
+DEMO_SCENE = EXAMPLES_DIR / DEMO_NAME
+DEMO_REFERENCE = EXAMPLES_DIR / REFERENCE_NAME
 DEMO_RESOLUTION = (256, 256)  # make demo's --res
 REFERENCE_SPP = 4096
 REFERENCE_SEED = 1_000_003  # not a seed render-and-denoise uses for its noisy render

@@ -15,7 +15,8 @@ from model.config import ModelConfig
 from denoise.chain import image_exposure
 from denoise.denoiser import Denoiser, count_invalid
 from denoise.energy import correct_in_place
-from denoise.noise_guard import blend_weight, clean_render, guard
+from denoise.noise_guard import DEFAULT_STRENGTH, blend_weight, clean_render, guard, strength_for
+from rendering.render import RenderResult
 from tests.nets import randomize_batchnorm
 
 TINY = ModelConfig(layers=3, growth=4, init_features=8)
@@ -115,6 +116,27 @@ def test_bare_network_output_is_not_energy_corrected(tmp_path: Path) -> None:
     assert res.energy_factor is not None and not np.array_equal(res.image, bare)  # the correction acted
     assert not np.shares_memory(res.network, res.image)
     assert np.array_equal(res.network, bare)
+
+
+@pytest.mark.parametrize("spp", [1, 4, 64])
+def test_an_array_with_its_variance_and_spp_is_denoised_as_its_render(tmp_path: Path, spp: int) -> None:
+    """``denoise_array(rgb, variance=v, spp=N)`` gives ``denoise_render``'s image, bit for bit: the
+    guard's strength follows the spp (:func:`strength_for`) unless one is given; without an spp it is 1
+    (a random direct-output network, so that its change is large and the strength shows)."""
+    img = _image(37, 29, seed=8)
+    den = Denoiser(write_tiny_checkpoint(tmp_path / "direct.ckpt", ModelConfig(layers=3, growth=4, init_features=8,
+                                                                                output="direct")))
+    change = den.denoise_array(img, keep_network=True).network - img
+    variance = (0.01 * change**2).astype(np.float32)  # weight ~0.01 at strength 1: the strength shows
+    rendered = den.denoise_render(RenderResult(img, spp=spp, variance=variance))
+    array = den.denoise_array(img, variance=variance, spp=spp)
+    assert np.array_equal(array.image, rendered.image) and array.guard_weight == rendered.guard_weight
+    weaker = den.denoise_array(img, variance=variance, spp=spp, strength=DEFAULT_STRENGTH)
+    assert not np.array_equal(weaker.image, array.image) and weaker.guard_weight < array.guard_weight
+    given = den.denoise_array(img, variance=variance, strength=strength_for(spp))
+    assert np.array_equal(given.image, array.image)  # this one network runs at every spp
+    unknown = den.denoise_array(img, variance=variance)
+    assert np.array_equal(unknown.image, weaker.image)
 
 
 def test_count_invalid_in_row_blocks() -> None:

@@ -46,3 +46,18 @@ def test_a_recipe_stages_warm_start_is_named_by_its_stage() -> None:
     assert warm_start_name("model/weights/flat-s-allspp.ckpt", "finetune") == "flat-s-allspp"
     assert warm_start_name("runs/old/best.ckpt", None) == "best"  # outside a recipe: the file, as it was given
     assert warm_start_name(None, "main") is None
+
+
+def test_every_shipped_checkpoint_names_its_recipe_in_its_own_header() -> None:
+    """Each file describes itself: its header's card record names the recipe and final stage
+    that make it (the recipe as it is now: the same sha256), the hours and hardware, and agrees
+    with the manifest's card of it."""
+    from model.checkpoint import checkpoint_meta, read_checkpoint
+    from training.recipe import load_recipe
+
+    for name, card in registry().checkpoints.items():
+        meta = checkpoint_meta(read_checkpoint(registry().folder / card.file).header)
+        recipe = load_recipe(card.recipe)
+        assert meta.get("recipe") == recipe.identity(recipe.final.name), name
+        assert card.training["recipe_stage"] == recipe.final.name and card.training["hardware"], name
+        assert card.training["hours"] == {k: round(v, 2) for k, v in meta["hours"].items()}, name

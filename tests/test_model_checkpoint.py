@@ -11,7 +11,7 @@ import torch
 from imaging.errors import CheckpointError
 from model.architectures import build_model
 from model.checkpoint import (code_version, compact_optimizer, load_model, read_checkpoint, restore_optimizer,
-                              restore_rng, save_checkpoint, strip_optimizer)
+                              replace_meta, restore_rng, save_checkpoint, strip_optimizer)
 from model.config import ModelConfig
 from training.loss import denoising_loss
 
@@ -82,6 +82,23 @@ def test_strip_optimizer_keeps_weights_and_header(tmp_path: Path) -> None:
     with pytest.raises(CheckpointError, match="checkpoint not found"):
         strip_optimizer(tmp_path / "nope.ckpt", tmp_path / "out.ckpt")
     assert not (tmp_path / "out.ckpt").exists()
+
+
+def test_replace_meta_gives_a_file_its_card_record_and_keeps_its_weights(tmp_path: Path) -> None:
+    """Every tensor bit for bit and every other header field as written; only ``meta`` is new."""
+    model, _ = _trained()
+    path = tmp_path / "old.ckpt"
+    save_checkpoint(path, model, step=7, train_config={"lr": 0.01}, extra={"cpu_s": 60.0})
+    before = read_checkpoint(path)
+    meta = {"recipe": {"name": "r", "sha256": "0" * 64, "stage": "main"}, "hours": {"cpu": 0.5, "gpu": 0.0}}
+    replace_meta(path, meta)
+    after = read_checkpoint(path)
+    assert set(after.tensors) == set(before.tensors)
+    for key, tensor in after.tensors.items():
+        assert tensor.dtype == before.tensors[key].dtype and torch.equal(tensor, before.tensors[key]), key
+    assert after.header == {**before.header, "meta": meta} and "meta" not in before.header
+    with pytest.raises(CheckpointError, match="checkpoint not found"):
+        replace_meta(tmp_path / "nope.ckpt", meta)
 
 
 def _continue(model: torch.nn.Module, opt: torch.optim.Adam, steps: int) -> None:

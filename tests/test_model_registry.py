@@ -156,8 +156,8 @@ def test_a_cards_training_line_says_what_its_file_records() -> None:
 
     recipe_run = card(steps=10, cpu_minutes=3.0, warm_start="best", recipe_stage="main",
                       hours={"cpu": 5.5, "gpu": 0.25}, hardware=["CPU A", "GPU B"])
-    assert training_line(recipe_run) == ("trained: 5.5 CPU-hours, 0.25 GPU-hours in all, from nothing, on CPU A, "
-                                         "GPU B: stage main of `train --recipe r`")
+    assert training_line(recipe_run) == ("trained: 5.5 CPU-hours, 0.25 GPU-hours from nothing to this file, on "
+                                         "CPU A, GPU B: stage main of `train --recipe r`")
     # a warm start outside a recipe: only its own run is known to be in its hours
     warm = card(steps=2000, cpu_minutes=11.3, warm_start="old", hours={"cpu": 0.19, "gpu": 0.0}, hardware=["CPU A"])
     assert training_line(warm) == ("trained: 2,000 steps, 11.3 CPU-minutes on CPU A in its last run, from old "

@@ -29,8 +29,8 @@ def copy(tmp_path: Path) -> Path:
     shutil.copy(ROOT / "README.md", tmp_path)
     shutil.copytree(ROOT / "docs", tmp_path / "docs")
     shutil.copytree(ROOT / "benchmarks" / "results", tmp_path / "benchmarks" / "results")
-    for path in (ROOT / "experiments" / "training").glob("*/*.json*"):
-        target = tmp_path / "experiments" / "training" / path.parent.name
+    for path in (ROOT / "experiments" / "training").glob("**/*.json*"):  # stage-STAGE/ logs too
+        target = tmp_path / path.parent.relative_to(ROOT)
         target.mkdir(parents=True, exist_ok=True)
         shutil.copy(path, target)
     return tmp_path

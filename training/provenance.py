@@ -7,17 +7,24 @@ carries the whole recipe's cost.
 """
 from __future__ import annotations
 
+import dataclasses
 import functools
+import json
 import platform
 from pathlib import Path
 from typing import Any
 
 import torch
 
-from imaging.errors import DatasetError
+from imaging.errors import ConfigError, DatasetError
 from model.checkpoint import BOX_FILTER, checkpoint_meta
 from model.device import device_name
 from training.batches import available_cpus
+from training.recipe import Recipe
+
+# TrainConfig fields that say where and how a run ran, not what it computes
+_RUN_FIELDS = {"data", "extra_data", "out", "cpu_budget_s", "threads", "workers", "device", "progress", "prefetch",
+               "init_from"}
 
 
 @functools.lru_cache(maxsize=1)
@@ -77,3 +84,24 @@ def card_meta(base: dict[str, Any], cpu_s: float, gpu_s: float, machine: str, pi
     if recipe:
         meta["recipe"] = dict(recipe)
     return meta
+
+
+def recipe_meta(header: dict[str, Any], recipe: Recipe, hardware_name: str) -> dict[str, Any]:
+    """The card's ``meta`` of a checkpoint that ``recipe``'s final stage made from scratch before
+    runs wrote one (:func:`card_meta` from the file's own record of its run: ``extra.cpu_s`` and
+    ``gpu_s``, its data's pixel filter; ``hardware_name`` from the recipe's ``[stages.measured]``).
+    Raises :class:`ConfigError` unless the file's training config is that stage's (the settings
+    that decide what it computes: not the run control or the data folders) and its run started
+    from nothing: a warm start's hours would be unknown."""
+    stage = recipe.final
+    recorded = header.get("train_config") or {}
+    if recorded.get("init_from") or stage.init_from:
+        raise ConfigError(f"recipe {recipe.name}: only a run from scratch has its hours in its own file")
+    expected = json.loads(json.dumps(dataclasses.asdict(stage.train_config("", [""], None)), default=list))
+    differ = sorted(k for k in expected if k not in _RUN_FIELDS and recorded.get(k) != expected[k])
+    if differ:
+        raise ConfigError(f"recipe {recipe.name}: the file was trained with other settings than stage "
+                          f"{stage.name} ({', '.join(differ)})")
+    extra = header.get("extra") or {}
+    return card_meta({}, float(extra.get("cpu_s") or 0.0), float(extra.get("gpu_s") or 0.0), hardware_name,
+                     data_pixel_filter(header.get("data_config") or {}), recipe.identity(stage.name))
