@@ -3,6 +3,7 @@ call on the bar it is given — the part of ``tqdm`` they use. Library code draw
 through such an object; the commands make them with :func:`tqdm_bars`."""
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any, Protocol
 
 
@@ -22,15 +23,36 @@ class ProgressFactory(Protocol):
     def __call__(self, total: int, initial: int = 0) -> ProgressBar: ...
 
 
-def tqdm_bars(unit: str, enabled: bool = True) -> ProgressFactory:
+def tqdm_bars(unit: str, enabled: bool = True, scale: bool = False) -> ProgressFactory:
     """A :class:`ProgressFactory` of ``tqdm`` bars on stderr counting ``unit``; ``enabled=False``
-    (``--quiet``, ``--no-progress``) draws nothing."""
+    (``--quiet``, ``--no-progress``, ``--json``) draws nothing; ``scale``: counts with SI prefixes
+    (``12.3M/256M``)."""
     def bar(total: int, initial: int = 0) -> ProgressBar:
         import sys
 
         from tqdm import tqdm
 
-        return tqdm(total=total, initial=initial, unit=unit, dynamic_ncols=True, disable=not enabled,
-                    file=sys.stderr)
+        return tqdm(total=total, initial=initial, unit=unit, unit_scale=scale, dynamic_ncols=True,
+                    disable=not enabled, file=sys.stderr)
 
     return bar
+
+
+def counted(bars: ProgressFactory | None, description: str) -> Callable[[int, int], None] | None:
+    """A ``(done, total)`` callback (a render's progress, :func:`rendering.render.render_loaded`)
+    that draws one bar of ``bars`` described as ``description``: opened at the first call, moved
+    to ``done``, closed when ``done`` reaches ``total``. None without ``bars``."""
+    if bars is None:
+        return None
+    state: dict[str, Any] = {"bar": None, "done": 0}
+
+    def advance(done: int, total: int) -> None:
+        if state["bar"] is None:
+            state["bar"] = bars(total)
+            state["bar"].set_description(description)
+        state["bar"].update(done - state["done"])
+        state["done"] = done
+        if done >= total:
+            state["bar"].close()
+
+    return advance

@@ -12,18 +12,21 @@ from typing import Any, NoReturn, TypeVar
 from imaging.errors import DenoiserError
 
 T = TypeVar("T")
-COMMAND_ERRORS = (DenoiserError, OSError, ValueError)  # what a command reports as one line (exit 1)
+# what a command reports as one line (exit 1); MemoryError: an allocation no check foresaw
+COMMAND_ERRORS = (DenoiserError, OSError, ValueError, MemoryError)
 USAGE_EXIT = 2
 ERROR_EXIT = 1
 INTERRUPTED_EXIT = 130
 
 
 def error_line(exc: BaseException) -> str:
-    """One line for an exception: an OSError as ``REASON: FILE``, anything else as the first line of
-    its message (its type's name when it has none)."""
+    """One line for an exception: an OSError as ``REASON: FILE``, a MemoryError as ``out of memory:
+    MESSAGE``, anything else as the first line of its message (its type's name when it has none)."""
     if isinstance(exc, OSError) and exc.strerror:
         return f"{exc.strerror}: {exc.filename}" if exc.filename else exc.strerror
     lines = [line for line in str(exc).strip().splitlines() if line.strip()]
+    if isinstance(exc, MemoryError):
+        return f"out of memory: {lines[0].strip() if lines else 'an allocation failed'}"
     return lines[0].strip() if lines else type(exc).__name__
 
 

@@ -16,7 +16,7 @@ from dataset_gen.config import DatasetConfig, stored_filter
 from dataset_gen.generate import generate_dataset
 from imaging.errors import DatasetError, DenoiserError
 from console.progress import tqdm_bars
-from console.usage import OneLineParser, int_list, name_list
+from console.usage import COMMAND_ERRORS, OneLineParser, int_list, name_list
 from rendering.scene_io import PIXEL_FILTERS, pixel_filter_spec
 
 
@@ -127,7 +127,7 @@ def main(argv: list[str] | None = None) -> int:
             from dataset_gen.preview import contact_sheet
 
             print(f"preview: {contact_sheet(out, read_records(out))}")
-    except (DenoiserError, ValueError, OSError) as exc:
+    except COMMAND_ERRORS as exc:
         return parser.fail(exc)
     except KeyboardInterrupt:
         return parser.interrupted("; re-run the same command to resume")

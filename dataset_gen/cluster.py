@@ -23,10 +23,11 @@ Guarantees, as on one machine:
 from __future__ import annotations
 
 import contextlib
+import itertools
 import logging
 import os
 import uuid
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from importlib import metadata
 from pathlib import Path
@@ -40,6 +41,8 @@ from imaging.errors import DatasetError, DenoiserError
 LOCAL_PREFIX = "local:"
 DEFAULT_RETRIES = 2
 CONNECT_TIMEOUT_S = 30
+WINDOW = 1024  # scene tasks submitted at once: enough to keep that many worker threads busy, and no
+# more client and scheduler memory whatever the scene count
 
 # Failures that recur whatever the worker: our own errors (SceneError, RenderError, DatasetError...)
 # and what scene generation raises for bad parameters. Not retried.
@@ -148,24 +151,29 @@ def is_deterministic(error: BaseException) -> bool:
     return isinstance(error, DETERMINISTIC)
 
 
-def render_on_cluster(spec: SchedulerSpec, cfg: DatasetConfig, todo: Sequence[int], folder: Path,
-                      finish: Finish, retries: int = DEFAULT_RETRIES, job: Job = run_job) -> None:
-    """Submit one task per scene of ``todo``; call ``finish(index, record, error)`` as each completes.
+def render_on_cluster(spec: SchedulerSpec, cfg: DatasetConfig, todo: Iterable[int], folder: Path,
+                      finish: Finish, retries: int = DEFAULT_RETRIES, job: Job = run_job,
+                      window: int = WINDOW) -> None:
+    """Submit one task per scene of ``todo``, at most ``window`` at once; call ``finish(index,
+    record, error)`` as each completes.
 
     Raises :class:`DatasetError` before submitting anything if a connected worker runs other code.
     A scene whose task fails transiently is submitted again, up to ``retries`` times (see the
     module doc). ``finish`` runs in this process, in completion order (it appends the manifest and
     drives the progress bar). ``job`` defaults to :func:`run_job` (tests pass a wrapper that fails).
     """
-    if not todo:
+    queue = iter(todo)
+    first = next(queue, None)
+    if first is None:
         return
+    queue = itertools.chain([first], queue)
     from distributed import as_completed
 
     folder = folder.resolve()
     threads = local_threads(spec)
     mine = code_version()
     batch = uuid.uuid4().hex[:8]  # unique keys: a long-lived scheduler may remember older runs
-    attempts = dict.fromkeys(todo, 0)
+    attempts: dict[int, int] = {}  # of the scenes submitted and not finished
     with connect(spec) as client:
         check_code(mine, {f"worker {address}": version
                           for address, version in client.run(worker_code_version).items()})
@@ -174,8 +182,17 @@ def render_on_cluster(spec: SchedulerSpec, cfg: DatasetConfig, todo: Sequence[in
             return client.submit(cluster_job, cfg, index, folder, threads, job, mine.to_dict(), retries=0,
                                  key=f"scene-{index:06d}-{batch}-{attempts[index]}")
 
-        futures = {submit(index): index for index in todo}
-        pending = as_completed(futures)
+        futures: dict[Any, int] = {}
+        pending = as_completed()
+
+        def top_up() -> None:
+            for index in itertools.islice(queue, window - len(futures)):
+                attempts[index] = 0
+                future = submit(index)
+                futures[future] = index
+                pending.add(future)
+
+        top_up()
         for future in pending:
             index = futures.pop(future)
             error = future.exception() if future.status == "error" else None
@@ -188,4 +205,6 @@ def render_on_cluster(spec: SchedulerSpec, cfg: DatasetConfig, todo: Sequence[in
                 pending.add(again)
             else:
                 finish(index, None if error is not None else future.result(), error)
+                del attempts[index]
             future.release()
+            top_up()

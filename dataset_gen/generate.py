@@ -9,6 +9,7 @@ cluster (``scheduler``, see :mod:`dataset_gen.cluster`).
 from __future__ import annotations
 
 import concurrent.futures as cf
+import itertools
 import multiprocessing
 import os
 import time
@@ -19,7 +20,7 @@ from typing import Any
 
 from dataset_gen.cluster import SchedulerSpec, render_on_cluster
 from dataset_gen.config import DatasetConfig, open_dataset
-from dataset_gen.jobs import IMAGES_DIR, SCENES_DIR, run_job
+from dataset_gen.jobs import IMAGES_DIR, SCENES_DIR, check_job_memory, run_job
 from dataset_gen.manifest import append_record, read_records, repair
 from imaging.atomic_io import TMP_PREFIX
 from rendering.backend import LLVM_VARIANT, resolve_variant
@@ -102,14 +103,17 @@ def generate_dataset(
     if workers < 0:
         raise DatasetError(f"--workers must be >= 0 (0: one job per 4 cores), got {workers}")
     workers = workers or auto_workers()
+    if scheduler is None:  # a cluster's workers have memory of their own
+        cfg.validate()
+        check_job_memory(cfg)
     cfg = open_dataset(folder, with_runtime(cfg))
     (folder / IMAGES_DIR).mkdir(exist_ok=True)
     remove_stale_temporaries(folder)
     repair(folder)
     finished = {r["index"] for r in read_records(folder)}
-    todo = [i for i in range(scenes) if i not in finished]
-    summary = GenerateSummary(skipped=scenes - len(todo))
-    progress = make_progress(len(todo)) if make_progress else None
+    todo = (i for i in range(scenes) if i not in finished)  # made one at a time: any --scenes takes no memory
+    summary = GenerateSummary(skipped=sum(1 for i in finished if 0 <= i < scenes))
+    progress = make_progress(scenes - summary.skipped) if make_progress else None
     start = time.perf_counter()
 
     def finish(index: int, record: dict[str, Any] | None, error: BaseException | None) -> None:
@@ -144,10 +148,16 @@ def generate_dataset(
             ctx = multiprocessing.get_context("spawn")
             with cf.ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker,
                                         initargs=(threads,)) as pool:
-                futures = {pool.submit(run_job, cfg, i, folder): i for i in todo}
-                for fut in cf.as_completed(futures):
-                    exc = fut.exception()
-                    finish(futures[fut], None if exc else fut.result(), exc)
+                futures: dict[cf.Future, int] = {}
+                while True:  # at most two jobs a worker submitted at once
+                    futures.update({pool.submit(run_job, cfg, i, folder): i
+                                    for i in itertools.islice(todo, 2 * workers - len(futures))})
+                    if not futures:
+                        break
+                    done, _ = cf.wait(futures, return_when=cf.FIRST_COMPLETED)
+                    for fut in done:
+                        exc = fut.exception()
+                        finish(futures.pop(fut), None if exc else fut.result(), exc)
     finally:
         if progress:
             progress.close()

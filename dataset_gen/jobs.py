@@ -17,7 +17,7 @@ from dataset_gen.config import DatasetConfig
 from imaging.exr import write_exr
 from imaging.metrics import RELMSE_EPS, tonemap
 from imaging.naming import image_name, scene_name
-from rendering.render import load_scene, prepare, render_loaded
+from rendering.render import check_render_memory, load_scene, prepare, render_loaded
 
 IMAGES_DIR = "images"
 SCENES_DIR = "scenes"
@@ -70,6 +70,16 @@ def reference_noise(half_a: np.ndarray, half_b: np.ndarray) -> dict[str, float]:
         "psnr_ceiling_db": float("inf") if mse == 0 else float(-10 * np.log10(mse)),
         "relmse": float(np.mean(err**2 / (mean.astype(np.float64) ** 2 + RELMSE_EPS))),
     }
+
+
+def check_job_memory(cfg: DatasetConfig) -> None:
+    """Raise :class:`imaging.errors.RenderError` when one job's renders do not fit in this
+    machine's memory (:func:`rendering.render.check_render_memory`): a noisy render with its AOVs
+    (and its variance with ``cfg.variance``), and the reference's second half beside the first and
+    their mean."""
+    width, height = cfg.res
+    check_render_memory(width, height, tuple(_AOV_RENDER_NAMES[a] for a in cfg.aovs), cfg.variance)
+    check_render_memory(width, height, held=("reference half", "reference mean"))
 
 
 def _render(scene: Any, spp: int, seed: int, aovs: tuple[str, ...], halves: bool = False) -> Any:

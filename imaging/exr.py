@@ -33,7 +33,7 @@ from imaging.atomic_io import atomic_path
 from imaging.blocks import DEFAULT_BLOCK_BYTES, row_blocks
 from imaging.errors import ExrError
 from imaging.exr_header import EXR_MAGIC, ExrHeader, read_exr_header
-from imaging.memory_limit import fits_in_memory, megabytes
+from imaging.memory_limit import megabytes, require_memory
 
 XYZ_LAYERS = ("normal", "sh_normal", "nrm")
 HALF_MAX = 65504.0  # largest finite float16
@@ -180,11 +180,8 @@ def check_exr_file(path: Path) -> ExrHeader:
 def check_exr_memory(header: ExrHeader, need: int, what: str) -> None:
     """Raise :class:`ExrError` naming both sizes when ``need`` bytes (``what``: for the message)
     do not fit in the memory left (:mod:`imaging.memory_limit`)."""
-    fits, room = fits_in_memory(need)
-    if not fits:
-        part = header.parts[0]
-        raise ExrError(f"{header.path}: {part.width}x{part.height} pixels: {what} need {megabytes(need)}, "
-                       f"more than the {megabytes(room)} of memory available")
+    part = header.parts[0]
+    require_memory(need, f"{header.path}: {part.width}x{part.height} pixels: {what}", ExrError)
 
 
 def error_text(exc: BaseException) -> str:

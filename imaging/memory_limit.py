@@ -11,6 +11,8 @@ from __future__ import annotations
 import resource
 from pathlib import Path
 
+from imaging.errors import DenoiserError
+
 MB = 2**20
 _MEMINFO = Path("/proc/meminfo")
 _STATUS = Path("/proc/self/status")
@@ -68,3 +70,12 @@ def fits_in_memory(need: int, limit: int | None = None) -> tuple[bool, int | Non
     :func:`available_bytes` (unknown: always fits)."""
     room = available_bytes() if limit is None else limit
     return (room is None or need <= room), room
+
+
+def require_memory(need: int, what: str, error: type[DenoiserError] = DenoiserError) -> None:
+    """Raise ``error`` with the one line ``WHAT need N MB, more than the M MB of memory available``
+    when ``need`` bytes do not fit (:func:`fits_in_memory`): the refusal a command gives before an
+    allocation that cannot succeed, instead of the allocation's own failure."""
+    fits, room = fits_in_memory(need)
+    if not fits:
+        raise error(f"{what} need {megabytes(need)}, more than the {megabytes(room)} of memory available")

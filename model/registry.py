@@ -372,13 +372,52 @@ class Registry:
         best = max(p for p, _, _ in scored)
         return min((t, n) for p, t, n in scored if p >= best - AUTO_TOLERANCE_DB)[1]
 
+    @staticmethod
+    def spec_words(spec: str) -> str:
+        """The members of a spec without ranges, each ``NAME`` or ``NAME (PRECISION)``, joined by `` + ``."""
+        words = []
+        for text in spec.split(SEPARATOR):
+            cname, _, _, precision = split_member(text.strip())
+            words.append(cname + (f" ({precision})" if precision else ""))
+        return " + ".join(words)
+
+    def spp_ranges(self, spec: str) -> list[tuple[int, int, list[str]]]:
+        """What an expert spec runs at each spp, as a person reads it: (LO, HI, members as
+        ``NAME`` or ``NAME (PRECISION)``) for consecutive spp ranges from 1 (HI 0: no limit). A
+        member runs where its range and its checkpoint's trained spp (:class:`CheckpointCard`)
+        both cover the spp, as :meth:`denoise.denoiser.Denoiser.active` does; where none does,
+        the first member runs."""
+        members = []
+        for text in spec.split(SEPARATOR):
+            cname, lo, hi, precision = split_member(text.strip())
+            t_lo, t_hi = self.checkpoints[cname].trained_spp if cname in self.checkpoints else (0, 0)
+            ends = [n for n in (hi, t_hi) if n]
+            members.append((max(lo, t_lo, 1), min(ends, default=0), cname + (f" ({precision})" if precision else "")))
+        bounds = sorted({1, *(lo for lo, _, _ in members), *(hi + 1 for _, hi, _ in members if hi)})
+        ranges: list[tuple[int, int, list[str]]] = []
+        for start, stop in zip(bounds, [*bounds[1:], 0]):
+            running = [words for lo, hi, words in members if lo <= start and (not hi or start <= hi)]
+            running = list(dict.fromkeys(running or [members[0][2]]))
+            if ranges and ranges[-1][2] == running:
+                ranges[-1] = (ranges[-1][0], stop - 1 if stop else 0, running)
+            else:
+                ranges.append((start, stop - 1 if stop else 0, running))
+        return ranges
+
     def card(self, name: str) -> str:
-        """A registry entry's card as text: purpose, members, unknown-spp choice, figures, and
-        each checkpoint's architecture, training and recipe."""
+        """A registry entry's card as text: purpose, the networks that run at each spp, the
+        unknown-spp choice, figures, and each checkpoint's architecture, training and recipe."""
         entry = self.entry(name)
+        ranges = self.spp_ranges(entry.members)
+        several = any(len(running) > 1 for _, _, running in ranges)
         lines = [entry.help_line() + (" (the default)" if name == self.default else ""),
-                 f"  runs (by spp): {entry.members}",
-                 f"  runs (spp unknown): {entry.unknown_spp}"]
+                 "  runs, by the render's spp" + (" (two or more networks: their outputs weighted per pixel by "
+                                                  "their estimated errors; averaged where the render has no "
+                                                  "variance)" if several else "") + ":"]
+        lines += [f"    {spp_words(lo, hi)}: {' + '.join(running)}" for lo, hi, running in ranges]
+        lines.append("  runs, spp unknown: " + ", else ".join(
+            f"{self.spec_words(spec)}{'' if math.isinf(bound) else f' where the image noise level is below {bound:g}'}"
+            for bound, spec in entry.unknown_tiers))
         fig = entry.figures
         if fig.get("flip"):
             lines.append(f"  FLIP at 16 spp: {float(fig['flip']['16']):.3f}" if "16" in fig["flip"] else "")
@@ -399,6 +438,13 @@ class Registry:
         if self.license:
             lines.append(f"  licence: the weights are under {self.license}, as the code (the project's LICENSE file)")
         return "\n".join(line for line in lines if line)
+
+
+def spp_words(lo: int, hi: int) -> str:
+    """An spp range in words: ``1-16 spp``, ``17+ spp``, ``8 spp``."""
+    if not hi:
+        return f"{lo}+ spp"
+    return f"{lo} spp" if lo == hi else f"{lo}-{hi} spp"
 
 
 @functools.lru_cache(maxsize=4)

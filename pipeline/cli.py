@@ -132,8 +132,9 @@ def render_parser() -> OneLineParser:
                    help="choose spp (and, with --model auto, the model) to finish within SECONDS")
     p.add_argument("--curves", metavar="TRADEOFF_JSON",
                    help="trade curves (a tradeoff run's tradeoff.json) for --model auto")
-    p.add_argument("--json", action="store_true", help="print the run's record (metrics.json) instead of the table")
-    p.add_argument("--quiet", action="store_true", help="no summary on stdout")
+    p.add_argument("--json", action="store_true", help="print the run's record (metrics.json) instead of the "
+                   "table, and no progress")
+    p.add_argument("--quiet", action="store_true", help="no progress on stderr and no summary on stdout")
     return p
 
 
@@ -151,8 +152,9 @@ def main(argv: list[str] | None = None) -> int:
                     model=args.model,
                     compare_oidn=False if args.no_compare else ("oidn" in args.compare or None),
                     time_budget=args.time_budget, curves=args.curves)
-    log = (lambda s: None) if args.quiet or args.json else (lambda s: print(f"... {s}", file=sys.stderr))
-    metrics, code = parser.attempt(lambda: run(cfg, log))
+    quiet = args.quiet or args.json
+    log = (lambda s: None) if quiet else (lambda s: print(f"... {s}", file=sys.stderr))
+    metrics, code = parser.attempt(lambda: run(cfg, log, None if quiet else tqdm_bars("sample", scale=True)))
     if code == 0:
         print_record(parser, metrics, args, lambda m: [
             *summary_lines(m), f"report: {Path(cfg.out) / 'report.html'} (metrics.json, comparison.png beside it)"])

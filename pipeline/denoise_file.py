@@ -27,6 +27,7 @@ from imaging.blocks import DEFAULT_BLOCK_BYTES, row_blocks
 from imaging.exr_layers import (ALBEDO_WORDS, NORMAL_WORDS, VARIANCE_WORDS, ExrFile, Layer,
                                  describe_layers, find_aux_layer, pick_color_layer, read_exr_file,
                                  replace_layer, write_exr_file)
+from imaging.memory_limit import require_memory
 from imaging.metrics import all_metrics
 from imaging.output_paths import check_new_file, check_not_inputs, output_format
 from imaging.png import save_png
@@ -34,9 +35,12 @@ from rendering.render import half_variance
 from denoise.denoiser import Denoiser
 from denoise.energy import settings_if
 from denoise.noise_guard import DEFAULT_STRENGTH, strength_for
+from model.registry import AUTO
 from pipeline.evaluation import quality_lines
 
 HALVES_BYTES_PER_PIXEL = 128  # combine_halves: float64 temporaries of the mean and the variance
+OUTPUT_BYTES_PER_PIXEL = 12  # the denoised image, HxWx3 float32
+GUARD_BYTES_PER_PIXEL = 4  # the noise guard's HxW float32 weights
 
 
 @dataclass
@@ -185,6 +189,10 @@ def denoise_file(cfg: DenoiseFileConfig) -> dict[str, Any]:
                             f"input is {image.rgb.shape[1]}x{image.rgb.shape[0]}")
     spp = cfg.spp or image.spp
     variance = image.variance if cfg.noise_guard else None
+    height, width = image.rgb.shape[:2]
+    require_memory(height * width * (OUTPUT_BYTES_PER_PIXEL + GUARD_BYTES_PER_PIXEL * (variance is not None)),
+                   f"{cfg.inputs[0]}: {width}x{height} pixels: the denoised image"
+                   f"{' and its guard weights' if variance is not None else ''}", DenoiserError)
     strength = strength_for(spp) if spp else DEFAULT_STRENGTH
     result = denoiser.denoise_array(image.rgb, image.albedo, image.normals, variance=variance,
                                     strength=strength, spp=spp or None)
@@ -219,8 +227,9 @@ def denoise_summary(record: dict[str, Any]) -> list[str]:
     """``denoise``'s table of one run's record (:func:`denoise_file`)."""
     inputs = record["input"] if isinstance(record["input"], str) else " + ".join(record["input"])
     spp = f"{record['spp']} spp" if record.get("spp") else "spp unknown"
+    chosen = f" -> {record['ran']}" if record["model"] == AUTO and record.get("ran") else ""
     lines = [f"{inputs} -> {record['output']} ({record['layout']})",
-             f"model {record['model']} ({spp}): ran {_ran(record['models_run'], record['precision'])}, "
+             f"model {record['model']}{chosen} ({spp}): ran {_ran(record['models_run'], record['precision'])}, "
              f"{record['denoise_s']:.2f} s"]
     guard = record.get("noise_guard")
     if guard:

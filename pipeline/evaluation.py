@@ -28,7 +28,9 @@ from imaging.errors import DenoiserError
 from imaging.exr import read_exr
 from imaging.output_paths import check_not_inputs
 from imaging.metrics import all_metrics, flip, psnr, relmse
-from rendering.render import DEFAULT_MAX_MEMORY_MB, RenderResult, load_scene, pass_seeds, prepare, render_loaded
+from rendering.render import (DEFAULT_MAX_MEMORY_MB, Progress, RenderResult, check_render_memory, load_scene,
+                              pass_seeds, prepare, render_loaded)
+from rendering.render_crops import film_window
 from denoise.denoiser import DenoiseResult, Denoiser
 from denoise.energy import settings_if
 from denoise.oidn import oidn_denoise
@@ -98,11 +100,22 @@ def aovs_for(denoisers: Iterable[Denoiser]) -> tuple[str, ...]:
     return AOVS if any(d.needs_aovs for d in denoisers) else ()
 
 
-def render_input(scene: Any, spp: int, settings: RenderSettings, aovs: Sequence[str] = ()) -> RenderResult:
+def check_memory(scene: Any, settings: RenderSettings, spp: int, aovs: Sequence[str] = (),
+                 held: Sequence[str] = ()) -> None:
+    """Refuse, before anything is rendered, a loaded scene whose film is too large for the memory
+    left: :func:`rendering.render.check_render_memory` for :func:`render_input`'s render at
+    ``spp`` with ``held``, the other images of the film's size the command keeps beside it."""
+    _, _, width, height = film_window(scene)
+    check_render_memory(width, height, aovs, settings.noise_guard and spp >= 2, settings.max_memory_mb, held,
+                        settings.scene)
+
+
+def render_input(scene: Any, spp: int, settings: RenderSettings, aovs: Sequence[str] = (),
+                 progress: Progress | None = None) -> RenderResult:
     """The render a denoiser is given: ``spp`` samples at ``settings.seed``, in two halves (with
-    their variance) unless the noise guard is off."""
+    their variance) unless the noise guard is off; ``progress`` as :func:`render_loaded`'s."""
     return render_loaded(scene, spp, settings.seed, aovs, halves=settings.noise_guard,
-                         max_memory_mb=settings.max_memory_mb)
+                         max_memory_mb=settings.max_memory_mb, progress=progress)
 
 
 def read_reference(settings: RenderSettings) -> np.ndarray | None:
@@ -111,12 +124,13 @@ def read_reference(settings: RenderSettings) -> np.ndarray | None:
     return read_exr(settings.reference, max_bytes=settings.max_memory_mb * 2**20).rgb if settings.reference else None
 
 
-def render_reference(settings: RenderSettings, scene: Any, aovs: Sequence[str] = ()) -> RenderResult:
+def render_reference(settings: RenderSettings, scene: Any, aovs: Sequence[str] = (),
+                     progress: Progress | None = None) -> RenderResult:
     """The reference at ``settings.reference_spp`` with a seed of its own; ``scene`` is reused
     unless it renders AOVs (then the scene is loaded again without them)."""
     plain = settings.load() if aovs else scene
     return render_loaded(plain, settings.reference_spp, pass_seeds(settings.seed, 2)[1],
-                         max_memory_mb=settings.max_memory_mb)
+                         max_memory_mb=settings.max_memory_mb, progress=progress)
 
 
 def check_reference(settings: RenderSettings, reference: np.ndarray, render: RenderResult) -> None:

@@ -26,13 +26,16 @@ from imaging.exr import write_exr
 from imaging.metrics import percentile
 from imaging.output_paths import check_output_folder
 from imaging.peak_rss import PeakRSS
+from console.progress import ProgressFactory, counted
 from rendering.render import RenderResult
 from pipeline.budget import BudgetPlan, budget_candidates, plan_run
 from denoise.denoiser import DenoiseResult, Denoiser
-from pipeline.evaluation import (RenderSettings, aovs_for, check_reference, denoise_output, make_denoiser,
-                                 quality_lines, read_reference, render_input, render_reference, score)
+from pipeline.evaluation import (RenderSettings, aovs_for, check_memory, check_reference, denoise_output,
+                                 make_denoiser, quality_lines, read_reference, render_input, render_reference,
+                                 score)
 from denoise.noise_guard import DEFAULT_PIVOT_SPP, DEFAULT_RADIUS, strength_for
 from denoise.oidn import oidn_available
+from model.registry import AUTO
 from pipeline.report import write_comparison, write_previews, write_report
 
 
@@ -124,6 +127,7 @@ class _Run:
     images: dict[str, np.ndarray] = field(default_factory=dict)
     timings: dict[str, float] = field(default_factory=dict)
     oidn: dict[str, Any] = field(default_factory=dict)
+    bars: ProgressFactory | None = None  # the renders' progress bars (None: none drawn)
 
 
 def _start(cfg: RunConfig, log: Callable[[str], None]) -> _Run:
@@ -145,6 +149,9 @@ def _start(cfg: RunConfig, log: Callable[[str], None]) -> _Run:
 def _load_scene(run: _Run) -> None:
     t0 = time.perf_counter()
     run.scene = run.cfg.render.load(run.aovs)
+    held = ["denoised", *(["oidn"] if _oidn_setting(run.cfg.compare_oidn)["compared"] else []),
+            *(["reference"] if run.cfg.render.reference_spp else [])]  # a reference file is read already
+    check_memory(run.scene, run.cfg.render, run.spp, run.aovs, held)
     run.timings["scene_load_s"] = time.perf_counter() - t0
 
 
@@ -163,10 +170,11 @@ def _render_and_denoise(run: _Run) -> None:
     model as it applies to it; the budget's clock stops here."""
     run.log(f"rendering {run.spp} spp")
     with PeakRSS() as run.render_memory:  # Mitsuba's render and its buffers, reported on their own
-        run.noisy = render_input(run.scene, run.spp, run.cfg.render, run.aovs)
+        run.noisy = render_input(run.scene, run.spp, run.cfg.render, run.aovs, counted(run.bars, "render"))
     if run.reference is not None:
         check_reference(run.cfg.render, run.reference, run.noisy)
-    run.log(f"denoising with {run.denoiser.name}")
+    chosen = f" -> {run.denoiser.choice(run.spp).name}" if run.denoiser.name == AUTO else ""
+    run.log(f"denoising with {run.denoiser.name}{chosen}")
     denoised = denoise_output(run.noisy, run.denoiser)
     if run.plan:
         run.plan.actual_s = time.perf_counter() - run.started
@@ -184,7 +192,7 @@ def _compare(run: _Run) -> None:
         run.images["oidn"], run.timings["oidn_s"] = oidn.image, oidn.seconds
     if run.cfg.render.reference_spp:
         run.log(f"rendering the reference at {run.cfg.render.reference_spp} spp")
-        ref = render_reference(run.cfg.render, run.scene, run.aovs)
+        ref = render_reference(run.cfg.render, run.scene, run.aovs, counted(run.bars, "reference"))
         run.reference, run.timings["reference_render_s"] = ref.rgb, ref.seconds
     if run.reference is not None:
         run.images["reference"] = run.reference
@@ -239,10 +247,13 @@ def _metrics(run: _Run) -> dict[str, Any]:
     return json_safe(metrics)
 
 
-def run(cfg: RunConfig, log: Callable[[str], None] = lambda s: None) -> dict[str, Any]:
+def run(cfg: RunConfig, log: Callable[[str], None] = lambda s: None,
+        bars: ProgressFactory | None = None) -> dict[str, Any]:
     """Render, denoise, compare; write every output; return the metrics dict. metrics.json is
-    written last: a folder without it holds no finished run."""
+    written last: a folder without it holds no finished run. ``bars``: a progress bar per render
+    (samples rendered)."""
     state = _start(cfg, log)
+    state.bars = bars
     _load_scene(state)
     _fit_budget(state)
     _render_and_denoise(state)
@@ -255,11 +266,18 @@ def run(cfg: RunConfig, log: Callable[[str], None] = lambda s: None) -> dict[str
     return metrics
 
 
+def model_words(model: dict[str, Any]) -> str:
+    """The model of a record in words: the name given, for ``auto`` the entry it chose
+    (``auto -> fast``), and the networks that ran."""
+    chose = f" -> {model['ran']}" if model["name"] == AUTO and model.get("ran") else ""
+    return f"{model['name']}{chose}, ran {' + '.join(model['models_run'])}"
+
+
 def summary_lines(metrics: dict[str, Any]) -> list[str]:
     """A one-screen summary of a run's metrics."""
     t = metrics["timings"]
     lines = [f"{metrics['scene']}: {metrics['resolution'][0]}x{metrics['resolution'][1]} at "
-             f"{metrics['spp']} spp, model {metrics['model']['name']} ({metrics['variant']})",
+             f"{metrics['spp']} spp, model {model_words(metrics['model'])} ({metrics['variant']})",
              "timings: " + ", ".join(f"{k[:-2]} {v:.2f}s" for k, v in t.items())]
     guarded = metrics.get("noise_guard")
     if guarded:

@@ -13,6 +13,7 @@ before anything is timed. Outputs (:mod:`pipeline.tradeoff_report`): ``tradeoff.
 from __future__ import annotations
 
 import statistics
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from importlib import metadata
 from pathlib import Path
@@ -26,8 +27,8 @@ from rendering.render import RenderResult
 from denoise.denoiser import Denoiser, select
 from denoise.oidn import oidn_available
 from model.registry import SEPARATOR, range_suffix, registry
-from pipeline.evaluation import (OIDN, Output, RenderSettings, aovs_for, check_reference, denoise_output, make_denoiser,
-                                 read_reference, render_input, render_reference, score)
+from pipeline.evaluation import (OIDN, Output, RenderSettings, aovs_for, check_memory, check_reference, denoise_output,
+                                 make_denoiser, read_reference, render_input, render_reference, score)
 from pipeline.pareto import ERROR_OF_METRIC, equal_quality, metric_error, pareto_front
 
 DEFAULT_SPP = (1, 2, 4, 8, 16, 32, 64, 128, 256, 512, 1024)
@@ -108,9 +109,14 @@ def _median(values: list[float]) -> float:
 
 
 def _timed(render: RenderResult, denoiser: Denoiser | None, repeat: int) -> tuple[Output, list[float]]:
-    """:func:`denoise_output` ``repeat`` times: the last output and every run's seconds."""
-    outputs = [denoise_output(render, denoiser) for _ in range(repeat)]
-    return outputs[-1], [o.seconds for o in outputs]
+    """:func:`denoise_output` ``repeat`` times, one output held at a time: the last output and
+    every run's seconds."""
+    seconds = []
+    for _ in range(repeat):
+        output = None
+        output = denoise_output(render, denoiser)
+        seconds.append(output.seconds)
+    return output, seconds
 
 
 def _warm_up(scene: Any, settings: RenderSettings, aovs: tuple[str, ...],
@@ -131,6 +137,8 @@ def measure(cfg: TradeoffConfig, progress: ProgressFactory | None = None) -> dic
     reference = read_reference(settings)
     aovs = aovs_for(models.values())
     scene = settings.load(aovs)
+    check_memory(scene, settings, max(cfg.spp), aovs,
+                 ["denoised", *(["reference"] if settings.reference_spp else [])])  # a reference file is read already
     oidn = oidn_available() if cfg.compare_oidn is None else cfg.compare_oidn
     denoisers: dict[str, Denoiser | None] = {**models, **({OIDN: None} if oidn else {})}
     spps = sorted(cfg.spp)
@@ -139,17 +147,19 @@ def measure(cfg: TradeoffConfig, progress: ProgressFactory | None = None) -> dic
     ref_info: dict[str, Any] = {"file": settings.reference}
     if settings.reference_spp:
         _describe(bar, f"reference {settings.reference_spp} spp")
-        ref = render_reference(settings, scene, aovs)
+        ref = render_reference(settings, scene, aovs, _share(bar))
         reference, ref_info = ref.rgb, {"spp": settings.reference_spp, "seconds": ref.seconds}
     _advance(bar)
     assert reference is not None
     points: list[Point] = []
     for spp in spps:
         _describe(bar, f"{spp} spp: render")
-        renders = [render_input(scene, spp, settings, aovs) for _ in range(cfg.repeat)]
-        noisy = renders[-1]
+        render_times = []
+        for _ in range(cfg.repeat):  # one render held at a time: any --repeat takes the same memory
+            noisy = None
+            noisy = render_input(scene, spp, settings, aovs, _share(bar))
+            render_times.append(noisy.seconds)
         check_reference(settings, reference, noisy)
-        render_times = [r.seconds for r in renders]
         points.append(Point("none", spp, _median(render_times), 0.0, **score(noisy.rgb, reference),
                             render_times=render_times, denoise_times=[]))
         _advance(bar)
@@ -176,6 +186,13 @@ def measure(cfg: TradeoffConfig, progress: ProgressFactory | None = None) -> dic
 def _describe(bar: ProgressBar | None, text: str) -> None:
     if bar:
         bar.set_description(text)
+
+
+def _share(bar: ProgressBar | None) -> Callable[[int, int], None] | None:
+    """A render's progress shown as the share of its samples done, after the bar's step."""
+    if bar is None:
+        return None
+    return lambda done, total: bar.set_postfix_str(f"{done / total:.0%} of the samples")
 
 
 def _advance(bar: ProgressBar | None) -> None:

@@ -10,7 +10,7 @@ from __future__ import annotations
 import contextlib
 import math
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -19,12 +19,15 @@ import numpy as np
 
 from rendering.backend import select_variant
 from imaging.errors import RenderError, SceneError
-from rendering.render_crops import Crop, crop_layout, crop_seed, cropped, film_window, max_crop_pixels
+from imaging.memory_limit import require_memory
+from rendering.render_crops import (IMAGE_BYTES_PER_PIXEL, Crop, crop_layout, crop_seed, cropped, film_window,
+                                    max_crop_pixels, render_bytes)
 from rendering.scene_io import AOV_TYPES, FILTER_CLASSES, PreparedScene, prepare_dict, prepare_xml
 
 DEFAULT_MAX_SAMPLES_PER_PASS = 1 << 24
 DEFAULT_MAX_MEMORY_MB = 1024.0  # the commands' --max-memory-mb default
 MAX_SEED = 2**32 - 1
+Progress = Callable[[int, int], None]  # (samples rendered so far, samples in all) after each pass
 
 
 @dataclass
@@ -145,49 +148,57 @@ def zero_nonfinite(img: np.ndarray) -> np.ndarray:
     return ~finite.all(axis=2)
 
 
+def pass_seed(seed: int, index: int) -> int:
+    """Seed of pass ``index`` of one render: pass 0 uses ``seed``, later ones a 32-bit mix of it."""
+    if index == 0:
+        return seed
+    x = (seed * 0x9E3779B1 + index * 0x85EBCA77) & 0xFFFFFFFF
+    x ^= x >> 16
+    x = (x * 0x7FEB352D) & 0xFFFFFFFF
+    x ^= x >> 15
+    return x
+
+
 def pass_seeds(seed: int, passes: int) -> list[int]:
-    """Seeds of the passes of one render: pass 0 uses ``seed``, later ones a 32-bit mix of it."""
-    seeds = [seed]
-    for i in range(1, passes):
-        x = (seed * 0x9E3779B1 + i * 0x85EBCA77) & 0xFFFFFFFF
-        x ^= x >> 16
-        x = (x * 0x7FEB352D) & 0xFFFFFFFF
-        x ^= x >> 15
-        seeds.append(x)
-    return seeds
+    """Seeds of the first ``passes`` passes of one render (:func:`pass_seed`)."""
+    return [pass_seed(seed, i) for i in range(passes)]
 
 
-def _accumulate(scene: Any, spp: int, seed: int, max_samples_per_pass: int) -> np.ndarray:
+def _accumulate(scene: Any, spp: int, seed: int, max_samples_per_pass: int,
+                advance: Callable[[int], None]) -> np.ndarray:
     """Mean of ``spp`` samples per pixel of the film's current crop window in passes of at most
-    ``max_samples_per_pass`` samples (independent seeds), float64 HxWxC."""
+    ``max_samples_per_pass`` samples (independent seeds), float64 HxWxC; ``advance(samples)``
+    after each pass. Nothing is kept per pass: any spp takes the same memory."""
     import mitsuba as mi
 
     width, height = (int(v) for v in scene.sensors()[0].film().crop_size())
     per_pass = max(1, min(spp, max_samples_per_pass // max(1, width * height)))
     passes = math.ceil(spp / per_pass)
-    counts = [per_pass] * (passes - 1) + [spp - per_pass * (passes - 1)]
     acc: np.ndarray | None = None
-    for n, s in zip(counts, pass_seeds(seed, passes)):
+    for index in range(passes):
+        n = per_pass if index < passes - 1 else spp - per_pass * (passes - 1)
         # np.asarray views Mitsuba's image (no float32 copy); the product is float64(x) * (n/spp)
-        img = np.multiply(np.asarray(mi.render(scene, spp=n, seed=s)), n / spp, dtype=np.float64)
+        img = np.multiply(np.asarray(mi.render(scene, spp=n, seed=pass_seed(seed, index))), n / spp,
+                          dtype=np.float64)
         if acc is None:
             acc = img
         else:
             acc += img
         del img
+        advance(n * width * height)
     assert acc is not None
     return acc
 
 
 def _render_crop(scene: Any, spp: int, seed: int, max_samples_per_pass: int,
-                 halves: bool) -> tuple[np.ndarray, np.ndarray | None]:
+                 halves: bool, advance: Callable[[int], None]) -> tuple[np.ndarray, np.ndarray | None]:
     """The film's current crop window: float64 HxWxC mean and, for ``halves``, its variance."""
     if not halves:
-        return _accumulate(scene, spp, seed, max_samples_per_pass), None
+        return _accumulate(scene, spp, seed, max_samples_per_pass, advance), None
     n_a = spp // 2
-    seed_b = pass_seeds(seed ^ 0x5A5A5A5A, 2)[1]
-    a = _accumulate(scene, n_a, seed, max_samples_per_pass)
-    b = _accumulate(scene, spp - n_a, seed_b, max_samples_per_pass)
+    seed_b = pass_seed(seed ^ 0x5A5A5A5A, 1)
+    a = _accumulate(scene, n_a, seed, max_samples_per_pass, advance)
+    b = _accumulate(scene, spp - n_a, seed_b, max_samples_per_pass, advance)
     with np.errstate(invalid="ignore", over="ignore"):
         variance = half_variance(a[:, :, :3], b[:, :, :3], n_a, spp - n_a)
     a *= n_a / spp  # in place, the same values as a * (n_a / spp) + b * (n_b / spp)
@@ -219,6 +230,24 @@ def _store(acc: np.ndarray, outputs: list[np.ndarray], crop: Crop) -> int:
     return int(bad.sum())
 
 
+def check_render_memory(width: int, height: int, aovs: Sequence[str] = (), halves: bool = False,
+                        max_memory_mb: float | None = DEFAULT_MAX_MEMORY_MB, held: Sequence[str] = (),
+                        source: str = "") -> None:
+    """Raise :class:`RenderError` naming the size, the bytes and the memory left when a ``width`` x
+    ``height`` render with ``aovs`` (and its variance with ``halves``; the scratch of its crops
+    under ``max_memory_mb``, :func:`rendering.render_crops.render_bytes`) does not fit in the
+    memory left (:mod:`imaging.memory_limit`), or the float32 images of that size that the caller
+    holds beside them at once do not: ``held`` names them ("denoised", "reference"). Called before
+    anything is allocated or rendered; ``source`` (the scene file) begins the message."""
+    images = ["rgb", *aovs, *(["variance"] if halves else []), *held]
+    channels = 3 + 3 * len(aovs)
+    need = max(render_bytes(width, height, channels, halves, max_memory_mb),
+               len(images) * width * height * IMAGE_BYTES_PER_PIXEL)
+    plural = "s" if len(images) > 1 else ""
+    require_memory(need, f"{source + ': ' if source else ''}{width}x{height} pixels: {len(images)} float32 "
+                   f"image{plural} ({', '.join(images)}) and the render's scratch", RenderError)
+
+
 def render_loaded(
     scene: Any,
     spp: int,
@@ -227,6 +256,7 @@ def render_loaded(
     max_samples_per_pass: int = DEFAULT_MAX_SAMPLES_PER_PASS,
     halves: bool = False,
     max_memory_mb: float | None = DEFAULT_MAX_MEMORY_MB,
+    progress: Progress | None = None,
 ) -> RenderResult:
     """Render an already loaded scene (prepared with the same ``aovs``).
 
@@ -239,6 +269,10 @@ def render_loaded(
     None: one piece). The image is a deterministic function of (scene, spp, seed, aovs, halves,
     crop layout); a render in one crop (any film that fits) is the same whatever the budget; other
     layouts draw other samples from the same distribution.
+
+    A film whose images and scratch do not fit in the memory left is refused before anything is
+    allocated (:func:`check_render_memory`). ``progress(done, total)`` is called after each pass
+    with the samples rendered so far and in all (``spp`` x the film's pixels).
     """
     if isinstance(spp, bool) or not isinstance(spp, int) or spp < 1:
         raise RenderError(f"spp must be a positive integer, got {spp!r}")
@@ -252,18 +286,26 @@ def render_loaded(
     channels = 3 + 3 * len(aovs)
     _, _, width, height = film_window(scene)
     crops = crop_layout(width, height, max_crop_pixels(channels, halves, max_memory_mb))
+    check_render_memory(width, height, aovs, halves, max_memory_mb)
     if len(crops) > 1 and filter_class(scene) != FILTER_CLASSES["box"]:  # its samples spill over crop edges
         raise RenderError(f"a {width}x{height} film with a {filter_class(scene)} pixel filter does not fit the "
                           f"memory budget ({max_memory_mb} MB) in one piece, and only a box filter renders in crops")
     outputs = [np.empty((height, width, 3), np.float32) for _ in range(1 + len(aovs))]
     variance = np.empty((height, width, 3), np.float32) if halves else None
     nonfinite = 0
+    done, total = [0], spp * width * height
+
+    def advance(samples: int) -> None:
+        done[0] += samples
+        if progress is not None:
+            progress(done[0], total)
+
     with contextlib.ExitStack() as stack:
         set_crop = stack.enter_context(cropped(scene)) if len(crops) > 1 else None
         for index, crop in enumerate(crops):
             if set_crop is not None:
                 set_crop(crop)
-            acc, var = _render_crop(scene, spp, crop_seed(seed, index), max_samples_per_pass, halves)
+            acc, var = _render_crop(scene, spp, crop_seed(seed, index), max_samples_per_pass, halves, advance)
             if acc.shape != (crop[3], crop[2], channels):
                 raise RenderError(f"render returned {acc.shape[2]} channels, expected {channels}")
             nonfinite += _store(acc, outputs, crop)
@@ -289,16 +331,17 @@ def render(
     base_dir: str | Path | None = None,
     halves: bool = False,
     max_memory_mb: float | None = DEFAULT_MAX_MEMORY_MB,
+    progress: Progress | None = None,
 ) -> RenderResult:
     """Load and render a scene file or dict with a box filter and a float32 film.
 
     ``resolution`` is (width, height); ``aovs`` names extra buffers from ``AOV_TYPES`` (rendered
     only when asked for); ``params`` fills an XML scene's ``$name`` parameters; ``base_dir``
-    resolves a dict scene's relative asset paths; ``halves`` and ``max_memory_mb``: see
-    :func:`render_loaded`.
+    resolves a dict scene's relative asset paths; ``halves``, ``max_memory_mb`` and ``progress``:
+    see :func:`render_loaded`.
     """
     loaded = load_scene(prepare(scene, resolution, aovs, params, base_dir))
-    return render_loaded(loaded, spp, seed, aovs, max_samples_per_pass, halves, max_memory_mb)
+    return render_loaded(loaded, spp, seed, aovs, max_samples_per_pass, halves, max_memory_mb, progress)
 
 
-__all__ = ["AOV_TYPES", "RenderResult", "load_scene", "prepare", "render", "render_loaded"]
+__all__ = ["AOV_TYPES", "RenderResult", "check_render_memory", "load_scene", "prepare", "render", "render_loaded"]

@@ -61,6 +61,19 @@ def max_crop_pixels(channels: int, halves: bool, max_memory_mb: float | None) ->
     return max(MIN_CROP_PIXELS, int(usable // bytes_per_pixel(channels, halves)))
 
 
+IMAGE_BYTES_PER_PIXEL = 12  # one HxWx3 float32 output image (rgb, an AOV, the variance)
+
+
+def render_bytes(width: int, height: int, channels: int, halves: bool, max_memory_mb: float | None) -> int:
+    """Peak memory of a ``width`` x ``height`` render of ``channels`` output channels (3 + 3 per
+    AOV): its float32 output images (and the variance's with ``halves``), which are whole-film
+    whatever the budget, and the scratch of its largest crop under ``max_memory_mb``."""
+    pixels = width * height
+    crop = pixels if max_memory_mb is None else min(pixels, max_crop_pixels(channels, halves, max_memory_mb))
+    images = channels // 3 + int(halves)
+    return images * pixels * IMAGE_BYTES_PER_PIXEL + FIXED_BYTES + math.ceil(crop * bytes_per_pixel(channels, halves))
+
+
 def _split(total: int, parts: int) -> list[tuple[int, int]]:
     """``total`` cut into ``parts`` (start, length) runs whose lengths differ by at most one."""
     bounds = [total * i // parts for i in range(parts + 1)]

@@ -157,7 +157,7 @@ def test_failed_scene_is_reported_and_rerun_resumes(scheduler: cluster.Scheduler
     folder = tmp_path / "ds"
     with monkeypatch.context() as patch:
         patch.setattr("dataset_gen.generate.render_on_cluster",
-                      functools.partial(cluster.render_on_cluster, job=broken_job, retries=1))
+                      functools.partial(cluster.render_on_cluster, job=broken_job, retries=1, window=2))  # the third scene waits for a slot
         summary = generate_dataset(folder, CFG, scenes=3, scheduler=scheduler)
     assert summary.done == 2 and len(summary.failed) == 1 and "broken scene" in summary.failed[0]
     assert sorted(r["index"] for r in read_records(folder)) == [0, 2]

@@ -244,3 +244,53 @@ def test_scene_files_are_the_scenes(tmp_path: Path, capsys) -> None:
     assert "--scenes 3: only 1 scene file(s) given" in capsys.readouterr().err
     assert cli_main(["--scene-files", str(tmp_path / "none.xml"), "--out", str(tmp_path / "f"), "--quiet"]) == 1
     assert "none.xml: scene file not found" in capsys.readouterr().err
+
+
+def test_a_resolution_too_large_for_the_memory_is_refused_before_any_scene(
+        tmp_path: Path, capsys, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``--res 100000``: one line naming the size, the bytes and the memory left (64 GiB here),
+    before the folder is made; not a failure of every scene."""
+    import imaging.memory_limit
+
+    monkeypatch.setattr(imaging.memory_limit, "available_bytes", lambda: 64 * 2**30)
+    args = [arg if arg != "16" else "100000" for arg in TINY_ARGS]
+    assert cli_main(["--scenes", "3", "--out", str(tmp_path / "ds"), *args]) == 1
+    captured = capsys.readouterr()
+    assert captured.err.strip() == ("generate-dataset: error: 100000x100000 pixels: 1 float32 image (rgb) and the "
+                                    "render's scratch need 115,465 MB, more than the 65,536 MB of memory available")
+    assert not (tmp_path / "ds").exists()
+
+
+def test_any_scene_count_starts_at_once(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``--scenes 10**12``: the scenes to do are made one at a time (a list of them would not fit),
+    so the first job starts at once."""
+    started: list[int] = []
+
+    def first_only(cfg: DatasetConfig, index: int, folder: Path) -> dict:
+        started.append(index)
+        raise KeyboardInterrupt
+
+    import resource
+
+    from dataset_gen.generate import with_runtime
+    from imaging import memory_limit
+
+    with_runtime(TINY)  # Mitsuba loaded before the limit
+    monkeypatch.setattr("dataset_gen.generate.run_job", first_only)
+    soft, hard = resource.getrlimit(resource.RLIMIT_AS)
+    size = memory_limit.kb_field(memory_limit._STATUS, "VmSize") or 0
+    resource.setrlimit(resource.RLIMIT_AS, (size + 2**30, hard))  # a list would fail, not fill the machine
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            generate_dataset(tmp_path / "ds", TINY, scenes=10**12, workers=1)
+    finally:
+        resource.setrlimit(resource.RLIMIT_AS, (soft, hard))
+    assert started == [0]
+
+
+@pytest.mark.slow
+def test_a_process_pool_renders_every_scene_two_jobs_a_worker_at_a_time(tmp_path: Path) -> None:
+    """Two workers hold at most four jobs: the fifth scene is submitted as one finishes."""
+    summary = generate_dataset(tmp_path / "ds", TINY, scenes=5, workers=2)
+    assert (summary.done, summary.failed) == (5, [])
+    assert sorted(r["index"] for r in read_records(tmp_path / "ds")) == [0, 1, 2, 3, 4]

@@ -248,3 +248,23 @@ def test_the_command_asks_for_no_huge_pages(tmp_path: Path, rng: np.random.Gener
     write_exr(tmp_path / "in.exr", rng.random((H, W, 3)).astype(np.float32))
     run(capsys, str(tmp_path / "in.exr"), str(tmp_path / "out.exr"), "--model", str(ckpt))
     assert asked == [False]
+
+
+def test_a_denoised_image_beyond_the_memory_left_is_refused_before_denoising(
+        tmp_path: Path, rng: np.random.Generator, ckpt: Path, capsys: pytest.CaptureFixture,
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """The input read, the denoised image (12 bytes a pixel) and the guard's weights (4) must fit
+    in the memory left, or the command stops in one line before the network runs."""
+    import imaging.memory_limit
+    import pipeline.denoise_file as denoise_file
+
+    noisy = rng.random((H, W, 3)).astype(np.float32)
+    write_exr(tmp_path / "in.exr", noisy)
+    monkeypatch.setattr(denoise_file, "read_input", lambda path, *a, **k: denoise_file.InputImage(
+        str(path), noisy, variance=np.full_like(noisy, 0.01)))
+    monkeypatch.setattr(imaging.memory_limit, "available_bytes", lambda: H * W * 16 - 1)
+    assert denoise_main([str(tmp_path / "in.exr"), str(tmp_path / "out.exr"), "--model", str(ckpt)]) == 1
+    assert capsys.readouterr().err.strip() == (
+        f"denoise: error: {tmp_path / 'in.exr'}: 16x12 pixels: the denoised image and its guard weights need "
+        "3,072 bytes, more than the 3,071 bytes of memory available")
+    assert not (tmp_path / "out.exr").exists()

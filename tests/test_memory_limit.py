@@ -38,3 +38,12 @@ def test_an_address_space_limit_bounds_it() -> None:
 def test_fits_with_a_given_limit_and_messages() -> None:
     assert fits_in_memory(10, 10) == (True, 10) and fits_in_memory(11, 10) == (False, 10)
     assert megabytes(3 * 2**30) == "3,072 MB" and megabytes(1000) == "1,000 bytes"
+
+
+def test_require_memory_refuses_in_one_line_naming_both(monkeypatch: pytest.MonkeyPatch) -> None:
+    from imaging.errors import RenderError
+
+    monkeypatch.setattr(memory_limit, "available_bytes", lambda: 2**30)
+    memory_limit.require_memory(2**30, "it")
+    with pytest.raises(RenderError, match=r"^4x4 pixels need 2,048 MB, more than the 1,024 MB of memory available$"):
+        memory_limit.require_memory(2**31, "4x4 pixels", RenderError)

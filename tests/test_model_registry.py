@@ -167,3 +167,24 @@ def test_a_cards_training_line_says_what_its_file_records() -> None:
     assert training_line(card(steps=20000, cpu_minutes=113.8)) == (
         "trained: 20,000 steps, 113.8 CPU-minutes in one run from scratch (hardware not recorded); "
         "recipe: `train --recipe r`")
+
+
+def test_a_card_says_which_networks_run_at_which_spp(tmp_path: Path) -> None:
+    """The ranges of the spec, cut where a member's range or trained spp starts or ends."""
+    reg = Registry.load(manifest(tmp_path))
+    assert reg.spp_ranges("a:17-+a:-16+b+c:-16") == [(1, 16, ["a", "b", "c"]), (17, 0, ["a", "b"])]
+    assert reg.spp_ranges("a:-8+b:9-16@bfloat16") == [(1, 8, ["a"]), (9, 16, ["b (bfloat16)"]), (17, 0, ["a"])]
+    card = reg.card("balanced")
+    assert "\n    1-16 spp: a + b\n    17+ spp: c\n" in card and "a:-16+" not in card
+    assert "runs, spp unknown: a (bfloat16) where the image noise level is below 0.1, else b\n" in card
+
+
+@pytest.mark.parametrize("name", ["fast", "balanced", "high"])
+def test_the_shipped_cards_name_what_the_denoiser_runs(name: str) -> None:
+    """What a card says runs at an spp is what :meth:`Denoiser.active` runs there."""
+    from denoise.denoiser import Denoiser
+
+    denoiser = Denoiser(name)
+    for lo, hi, running in registry().spp_ranges(registry().entries[name].members):
+        for spp in {lo, hi or lo + 100}:
+            assert [n.path.stem for n in denoiser.active(spp)] == running, (name, spp)

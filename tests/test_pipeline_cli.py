@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from imaging.exr import read_exr, write_exr
-from pipeline.cli import denoise_main, main
+from pipeline.cli import denoise_main, main, tradeoff_main
 from pipeline.evaluation import RenderSettings
 from denoise.denoiser import Denoiser
 from tests.test_denoiser import write_tiny_checkpoint
@@ -230,7 +230,10 @@ def test_help_lists_the_registry_names_and_list_models_prints_the_cards(command,
     with pytest.raises(SystemExit) as exc:
         command(["--list-models"])  # no scene or file needed
     out = capsys.readouterr().out
-    assert exc.value.code == 0 and out.startswith("fast: ") and "runs (spp unknown)" in out and "recipe" in out
+    assert exc.value.code == 0 and out.startswith("fast: ") and "runs, spp unknown: " in out and "recipe" in out
+    # which networks run at which spp, as a person reads it, not the spec string
+    assert "\n    1-16 spp: unet-m-k5-lowspp\n    17+ spp: unet-l-allspp\n" in out
+    assert "\n    9-16 spp: unet-m-k5-lowspp + flat-s-allspp\n" in out and ":-16+" not in out
 
 
 def test_a_wrong_model_name_lists_the_valid_ones(tmp_path: Path, demo_run: Path, capsys: pytest.CaptureFixture) -> None:
@@ -252,14 +255,48 @@ def test_denoise_without_spp_says_what_it_ran_and_the_name_it_prints_works(
     record = json.loads(capsys.readouterr().out)
     assert record["model"] == "fast" and record["notes"] == [] and record["spp"] == 16
     assert denoise_main([str(plain), str(tmp_path / "c.exr"), "--model", record["model"], "--quiet"]) == 0
+    assert denoise_main([str(plain), str(tmp_path / "d.exr"), "--model", "auto", "--spp", "16"]) == 0
+    from model.registry import registry
+
+    assert f"model auto -> {registry().auto_entry(16)} (16 spp): ran " in capsys.readouterr().out
 
 
-def test_render_and_denoise_takes_auto_without_a_budget(tmp_path: Path) -> None:
-    """``--model auto``: the registry picks an entry for the render's spp; the record names both."""
+def test_render_and_denoise_takes_auto_without_a_budget(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """``--model auto``: the registry picks an entry for the render's spp; the record and the
+    summary name both, and the networks that ran; the render draws a progress bar of its samples."""
     from model.registry import registry
 
     out = tmp_path / "auto"
     assert main([str(DEMO), "--spp", "4", "--res", "24", "24", "--model", "auto", "--no-compare",
-                 "--out", str(out), "--quiet"]) == 0
+                 "--out", str(out)]) == 0
     model = json.loads((out / "metrics.json").read_text())["model"]
     assert model["name"] == "auto" and model["ran"] == registry().auto_entry(4)
+    captured = capsys.readouterr()
+    assert f"model auto -> {model['ran']}, ran {' + '.join(model['models_run'])} (" in captured.out
+    assert "render: 100%" in captured.err and "2.30k/2.30k" in captured.err  # 4 x 24 x 24 samples
+    assert f"... denoising with auto -> {model['ran']}\n" in captured.err
+
+
+def test_quiet_and_json_draw_no_progress(tmp_path: Path, ckpt: Path, capsys: pytest.CaptureFixture) -> None:
+    for flag in ("--quiet", "--json"):
+        assert main([str(DEMO), "--spp", "2", "--res", "16", "16", "--model", str(ckpt), "--no-compare",
+                     "--out", str(tmp_path / flag), flag]) == 0
+        assert capsys.readouterr().err == ""
+
+
+def test_a_film_too_large_for_the_memory_is_refused_in_one_line_before_rendering(
+        tmp_path: Path, ckpt: Path, capsys: pytest.CaptureFixture, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``--res 100000 100000``: the images it would hold, in bytes, against the memory left (set
+    to 64 GiB here), before any render; ``tradeoff`` the same."""
+    import imaging.memory_limit
+
+    monkeypatch.setattr(imaging.memory_limit, "available_bytes", lambda: 64 * 2**30)
+    args = [str(DEMO), "--res", "100000", "100000", "--model", str(ckpt), "--no-compare"]
+    _one_line_error(capsys, main([*args, "--spp", "4", "--out", str(tmp_path / "r")]),
+                    "demo.xml: 100000x100000 pixels: 3 float32 images (rgb, variance, denoised) and the "
+                    "render's scratch need 343,", "more than the 65,536 MB of memory available")
+    assert not (tmp_path / "r" / "noisy.exr").exists()
+    _one_line_error(capsys, tradeoff_main([*args, "--spp", "4", "--reference-spp", "8", "--quiet",
+                                           "--out", str(tmp_path / "t")]),
+                    "100000x100000 pixels: 4 float32 images (rgb, variance, denoised, reference)",
+                    "65,536 MB of memory available")

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import pytest
 
-from console.progress import tqdm_bars
+from console.progress import counted, tqdm_bars
 
 
 def test_tqdm_bars_count_from_the_initial_step(capsys: pytest.CaptureFixture) -> None:
@@ -22,3 +22,13 @@ def test_disabled_bars_draw_nothing(capsys: pytest.CaptureFixture) -> None:
     bar.update(3)
     bar.close()
     assert capsys.readouterr().err == ""
+
+
+def test_counted_draws_one_bar_from_done_and_total(capsys: pytest.CaptureFixture) -> None:
+    """A render's ``(done, total)`` calls move one bar to ``done`` and close it at ``total``."""
+    advance = counted(tqdm_bars("sample"), "render")
+    for done in (3, 5, 10):
+        advance(done, 10)
+    err = capsys.readouterr().err
+    assert "render: 100%" in err and "10/10" in err
+    assert counted(None, "render") is None

@@ -11,7 +11,7 @@ import pytest
 
 from rendering import render_crops
 from imaging.errors import RenderError
-from rendering.render import (half_variance, load_scene, pass_seeds, prepare, render, render_loaded,
+from rendering.render import (check_render_memory, half_variance, load_scene, pass_seeds, prepare, render, render_loaded,
                             zero_nonfinite)
 from rendering.render_crops import crop_layout, crop_seed, film_window, max_crop_pixels
 from tests.conftest import lit_plane_scene
@@ -243,3 +243,51 @@ def test_half_variance_refuses_bad_halves() -> None:
         half_variance(np.zeros((2, 2, 3)), np.zeros((2, 3, 3)), 1, 1)
     with pytest.raises(ValueError, match="at least one sample"):
         half_variance(np.zeros((2, 2, 3)), np.zeros((2, 2, 3)), 0, 2)
+
+
+def test_a_film_beyond_the_memory_left_is_refused_before_anything_is_allocated(
+        plane_scene: dict, monkeypatch: pytest.MonkeyPatch) -> None:
+    """One line naming the size, the bytes and the memory left, instead of numpy's allocation
+    failure (or the OOM killer): a 32x32 film in halves holds rgb and variance (2 x 12 KiB) and
+    the render's scratch (its fixed 32 MB and 128 bytes a pixel)."""
+    import imaging.memory_limit
+
+    loaded = load_scene(prepare(plane_scene))
+    need = 2 * 32 * 32 * 12 + render_crops.FIXED_BYTES + 32 * 32 * 128
+    assert render_crops.render_bytes(32, 32, 3, True, 1024.0) == need
+    monkeypatch.setattr(imaging.memory_limit, "available_bytes", lambda: need - 1)
+    with pytest.raises(RenderError, match=r"^32x32 pixels: 2 float32 images \(rgb, variance\) and the render's "
+                                          r"scratch need 32 MB, more than the 32 MB of memory available$"):
+        render_loaded(loaded, spp=2, halves=True)
+    monkeypatch.setattr(imaging.memory_limit, "available_bytes", lambda: need)
+    assert render_loaded(loaded, spp=2, halves=True).variance is not None
+    with pytest.raises(RenderError, match=r"demo.xml: 100000x100000 pixels: 4 float32 images \(rgb, albedo, "
+                                          r"denoised, reference\)"):
+        check_render_memory(100_000, 100_000, ("albedo",), held=("denoised", "reference"), source="demo.xml")
+
+
+def test_progress_counts_every_sample_of_every_pass_and_crop(plane_scene: dict) -> None:
+    """``progress(done, total)`` after each pass: rising to spp x pixels over the passes of both
+    halves of every crop."""
+    loaded = load_scene(prepare(plane_scene, (128, 64)))
+    calls: list[tuple[int, int]] = []
+    result = render_loaded(loaded, spp=8, halves=True, max_samples_per_pass=2 * 4096, max_memory_mb=0.01,
+                           progress=lambda done, total: calls.append((done, total)))
+    assert result.crops == 2  # of 4096 pixels (render_crops.MIN_CROP_PIXELS)
+    assert len(calls) == 2 * 2 * 2  # two passes of 2 spp in each half of each crop
+    assert [d for d, _ in calls] == sorted({d for d, _ in calls}) and calls[-1] == (8 * 8192, 8 * 8192)
+
+
+def test_a_huge_spp_starts_at_once_and_holds_nothing_per_pass(plane_scene: dict) -> None:
+    """10^12 passes of one sample: nothing is made per pass before they run (a list of 10^12
+    counts or seeds would not fit), so the first pass reports at once."""
+    class Stop(Exception):
+        pass
+
+    def stop(done: int, total: int) -> None:
+        raise Stop(done, total)
+
+    loaded = load_scene(prepare(plane_scene))
+    with pytest.raises(Stop) as stopped:
+        render_loaded(loaded, spp=10**12, max_samples_per_pass=1, progress=stop)
+    assert stopped.value.args == (32 * 32, 10**12 * 32 * 32)

@@ -161,3 +161,29 @@ def test_bad_settings(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
 
 def test_registry_names_label_themselves_auto_included() -> None:
     assert model_labels(["auto", "balanced"]) == {"auto": "auto", "balanced": "balanced"}
+
+
+def test_repeats_hold_one_output_at_a_time(monkeypatch: pytest.MonkeyPatch) -> None:
+    """``--repeat N`` times a denoiser N times keeping only the last image: any N, the same memory."""
+    import gc
+    import weakref
+
+    import numpy as np
+
+    from pipeline import tradeoff
+    from pipeline.evaluation import Output
+
+    alive: list[weakref.ref] = []
+    most = [0]
+
+    def fake_output(render: object, denoiser: object) -> Output:
+        gc.collect()
+        most[0] = max(most[0], sum(r() is not None for r in alive))
+        image = np.zeros((4, 4, 3), np.float32)
+        alive.append(weakref.ref(image))
+        return Output(image, 0.5)
+
+    monkeypatch.setattr(tradeoff, "denoise_output", fake_output)
+    output, seconds = tradeoff._timed(None, None, 5)
+    assert seconds == [0.5] * 5 and output.image is alive[-1]()
+    assert most[0] == 0  # the previous output is let go before the next is made

@@ -61,6 +61,18 @@ def test_runtime_errors_are_one_line_like_usage_errors(capsys: pytest.CaptureFix
         "cmd: error: ValueError", "cmd: interrupted; re-run it"]
 
 
+def test_an_allocation_no_check_foresaw_is_one_line(capsys: pytest.CaptureFixture) -> None:
+    """A MemoryError (numpy's, with its size) ends a command as any other error: one line, exit 1."""
+    import numpy as np
+
+    parser = OneLineParser(prog="cmd")
+    assert parser.attempt(lambda: np.empty((2**20, 2**20, 3), np.float32)) == (None, 1)
+    assert parser.attempt(lambda: (_ for _ in ()).throw(MemoryError())) == (None, 1)
+    first, second = capsys.readouterr().err.splitlines()
+    assert first.startswith("cmd: error: out of memory: Unable to allocate ") and "(1048576, 1048576, 3)" in first
+    assert second == "cmd: error: out of memory: an allocation failed"
+
+
 @pytest.mark.parametrize("kind, text, value", [
     (int_list, "4,16,,128", (4, 16, 128)), (name_list, "a,,b", ("a", "b")), (name_value, "x=1=2", ("x", "1=2")),
     (positive_int, "3", 3), (positive_float, "0.5", 0.5), (size_list, "1920x1080, 64X1", [(1920, 1080), (64, 1)])])

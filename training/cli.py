@@ -319,7 +319,7 @@ def recipe_main(parser: OneLineParser, args: argparse.Namespace) -> int:
         enabled = run.control.get("progress", True)
         result = run_recipe(recipe, run, tqdm_bars("step", enabled=enabled), tqdm_bars("scene", enabled=enabled),
                             log=lambda line: print(f"train: {line}", flush=True))
-    except (DenoiserError, OSError) as exc:
+    except (DenoiserError, OSError, MemoryError) as exc:
         return parser.fail(exc)
     except KeyboardInterrupt:
         return parser.interrupted("; run the same command again to resume")
@@ -363,7 +363,7 @@ def main(argv: list[str] | None = None) -> int:
             result = train_distributed(config, rank, resume=resume, progress=progress, resume_hint=hint)
         else:
             result = train(config, resume=resume, progress=progress, minutes=args.minutes)
-    except (DenoiserError, OSError) as exc:
+    except (DenoiserError, OSError, MemoryError) as exc:
         tag = f"rank {rank.rank}: " if rank is not None and rank.world > 1 and "rank " not in str(exc) else ""
         return parser.fail(exc, tag)
     except KeyboardInterrupt:
