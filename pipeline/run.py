@@ -132,7 +132,7 @@ class _Run:
 
 def _start(cfg: RunConfig, log: Callable[[str], None]) -> _Run:
     """Check the settings, load the models, read the reference file and prepare the output folder
-    (everything that can fail before the render); write config.json."""
+    (everything that can fail before the scene loads)."""
     cfg.render.check()
     cfg.render.check_outputs(cfg.out, OUTPUT_NAMES)
     check_output_folder(cfg.out, RESULT_NAMES, cfg.render.overwrite)
@@ -141,7 +141,6 @@ def _start(cfg: RunConfig, log: Callable[[str], None]) -> _Run:
     denoiser = next(iter(candidates.values())) if candidates else make_denoiser(cfg.model, cfg.render)
     reference = read_reference(cfg.render)
     _check_out(Path(cfg.out))
-    write_json_atomic(Path(cfg.out) / "config.json", asdict(cfg))
     aovs = aovs_for([denoiser, *candidates.values()])
     return _Run(cfg, log, started, denoiser, candidates, reference, aovs, spp=cfg.spp)
 
@@ -255,6 +254,9 @@ def run(cfg: RunConfig, log: Callable[[str], None] = lambda s: None,
     state = _start(cfg, log)
     state.bars = bars
     _load_scene(state)
+    # written once the scene and its memory passed: a refused start leaves no file that would
+    # make the corrected command's folder look like an earlier run's
+    write_json_atomic(Path(cfg.out) / "config.json", asdict(cfg))
     _fit_budget(state)
     _render_and_denoise(state)
     _compare(state)

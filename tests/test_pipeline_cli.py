@@ -296,6 +296,9 @@ def test_a_film_too_large_for_the_memory_is_refused_in_one_line_before_rendering
                     "demo.xml: 100000x100000 pixels: 3 float32 images (rgb, variance, denoised) and the "
                     "render's scratch need 343,", "more than the 65,536 MB of memory available")
     assert not (tmp_path / "r" / "noisy.exr").exists()
+    assert not (tmp_path / "r" / "config.json").exists()  # the corrected command may use the folder
+    assert main([str(DEMO), "--res", "16", "16", "--model", str(ckpt), "--no-compare", "--spp", "2", "--quiet",
+                 "--out", str(tmp_path / "r")]) == 0
     _one_line_error(capsys, tradeoff_main([*args, "--spp", "4", "--reference-spp", "8", "--quiet",
                                            "--out", str(tmp_path / "t")]),
                     "100000x100000 pixels: 4 float32 images (rgb, variance, denoised, reference)",
