@@ -91,7 +91,7 @@ def hidden_noise_psnr(run: Path) -> dict[str, Any]:
     root = Path(train["data"])
     records = [r for r in read_manifest(root) if r.split == "val"
                and (not train.get("max_scenes") or r.index < train["max_scenes"])]
-    images = load_val_images(root, records, config.aux_inputs, noise=True)
+    images = load_val_images(root, records, config.aux_inputs, noise=True, normals=config.aux_normals)
     with_noise = Validator(images, use_oidn=False).run(model)
     hidden = Validator([type(i)(i.scene, i.spp, i.noisy, i.ref, i.aux, None) for i in images],
                        use_oidn=False).run(model)

@@ -21,6 +21,7 @@ from rendering.render import check_render_memory, load_scene, prepare, render_lo
 
 IMAGES_DIR = "images"
 SCENES_DIR = "scenes"
+SCENE_XML = "scene.xml"  # a generated scene's file in its folder SCENES_DIR/sceneNNNN
 _AOV_RENDER_NAMES = {"alb": "albedo", "nrm": "sh_normal"}
 SCENE_FILE_FAMILY = "scene-file"  # the family of a scene rendered from a user's file
 _AOV_LAYER_NAMES = {"alb": "albedo", "nrm": "normal"}
@@ -91,6 +92,11 @@ def finite_variance(variance: np.ndarray) -> np.ndarray:
     return np.nan_to_num(variance, nan=0.0, posinf=np.finfo(np.float32).max, neginf=0.0).astype(np.float32)
 
 
+def scene_file(folder: Path, index: int) -> Path:
+    """Where the dataset in ``folder`` keeps generated scene ``index``'s Mitsuba XML."""
+    return folder / SCENES_DIR / scene_name(index) / SCENE_XML
+
+
 def run_job(cfg: DatasetConfig, index: int, folder: Path) -> dict[str, Any]:
     """Render scene ``index`` into ``folder`` and return its manifest record.
 
@@ -104,7 +110,8 @@ def run_job(cfg: DatasetConfig, index: int, folder: Path) -> dict[str, Any]:
     if cfg.scene_files:
         xml = Path(cfg.scene_files[index])
     else:
-        xml = write_scene(generate(seeds.family, seeds.scene_seed), folder / SCENES_DIR / scene_name(index))
+        path = scene_file(folder, index)
+        xml = write_scene(generate(seeds.family, seeds.scene_seed), path.parent, path.name)
     t_gen = time.perf_counter() - t0
 
     render_aovs = tuple(_AOV_RENDER_NAMES[a] for a in cfg.aovs)

@@ -37,6 +37,7 @@ from denoise.flips import FLIPS, check_flips
 from model.noise_input import noise_channels
 from model.transfer import HDR_MAX, TransferFunction, get_transfer
 from model.unet import pad_to_alignment
+from rendering.camera import rotate_normals
 
 SKIP_CELL = 64  # pixels per side of the cells the skip test looks at (a multiple of every alignment <= 64)
 # Scratch of the passes over the whole image (log-average luminance, the skip test, sanitising)
@@ -204,11 +205,15 @@ def flip_average(model: nn.Module, x: torch.Tensor, flips: int, align: int) -> t
     return total.div_(len(FLIPS[flips]))[..., :h, :w]
 
 
-def _aux_window(aux: Aux, t: Tile) -> torch.Tensor:
-    """The tile window of the aux buffers as an hxwx6 float32 tensor, non-finite values -> 0."""
+def _aux_window(aux: Aux, t: Tile, normals_rotation: np.ndarray | None = None) -> torch.Tensor:
+    """The tile window of the aux buffers as an hxwx6 float32 tensor, non-finite values -> 0, the
+    normals multiplied by ``normals_rotation`` where one is given."""
     parts = aux if isinstance(aux, (tuple, list)) else [aux]
     window = np.concatenate([np.asarray(a[t.wy0:t.wy1, t.wx0:t.wx1], np.float32) for a in parts], axis=2)
-    return torch.from_numpy(np.nan_to_num(window, nan=0.0, posinf=0.0, neginf=0.0))
+    window = np.nan_to_num(window, nan=0.0, posinf=0.0, neginf=0.0)
+    if normals_rotation is not None:
+        window[..., 3:6] = rotate_normals(window[..., 3:6], normals_rotation)
+    return torch.from_numpy(window)
 
 
 def image_exposure(color: np.ndarray, max_bytes: float = DEFAULT_PASS_BYTES) -> float:
@@ -224,14 +229,17 @@ def image_exposure(color: np.ndarray, max_bytes: float = DEFAULT_PASS_BYTES) -> 
 def denoise_image(model: nn.Module, color: np.ndarray, aux: Aux = None,
                   core: Core = 256, progress: Callable[[int, int], None] | None = None,
                   variance: np.ndarray | None = None, skip_below: float | None = None,
-                  max_bytes: float = DEFAULT_PASS_BYTES, flips: int = 1, exposure: float | None = None) -> np.ndarray:
+                  max_bytes: float = DEFAULT_PASS_BYTES, flips: int = 1, exposure: float | None = None,
+                  normals_rotation: np.ndarray | None = None) -> np.ndarray:
     """Denoise HxWx3 linear radiance -> HxWx3 float32 linear radiance >= 0 (at most HDR_MAX divided
     by :func:`exposure_scale`, i.e. HDR_MAX unless the image is unusually bright).
 
     ``model``: a network of :mod:`model.architectures` or its folded inference copy (anything
     with the ``config`` of the network). ``aux``: HxWx6 (albedo RGB in [0,1], normal XYZ in
     [-1,1]), or the two HxWx3 buffers as a pair; required iff the model was built with
-    ``aux_inputs``. ``variance``: HxWx3 variance
+    ``aux_inputs``; its normals in the frame the model's ``aux_normals`` names, or turned into it
+    by ``normals_rotation`` (3x3, ``n -> R @ n`` per pixel, tile by tile: world normals and
+    :func:`rendering.camera.sensor_rotation` for a model that takes them in camera space). ``variance``: HxWx3 variance
     estimate of the image's mean (two halves); fed to a model with ``noise_input`` (without it
     such a model is told the noise is unknown) and used by ``skip_below`` (see the module
     docstring). ``core``: tile core side in pixels, or (rows, columns) (memory bound of the tiles,
@@ -272,7 +280,7 @@ def denoise_image(model: nn.Module, color: np.ndarray, aux: Aux = None,
         encoded = transfer.forward(torch.from_numpy(rgb))
         x[0, :3] = encoded.permute(2, 0, 1)
         if aux is not None:
-            x[0, 3:9] = _aux_window(aux, t).permute(2, 0, 1)
+            x[0, 3:9] = _aux_window(aux, t, normals_rotation).permute(2, 0, 1)
         if config.noise_input:
             var = None if variance is None else \
                 np.asarray(variance[t.wy0:t.wy1, t.wx0:t.wx1], np.float32) * np.float32(scale * scale)

@@ -389,9 +389,13 @@ class Denoiser:
     def denoise_array(self, rgb: np.ndarray, albedo: np.ndarray | None = None,
                       normals: np.ndarray | None = None, variance: np.ndarray | None = None,
                       strength: float | None = None, keep_network: bool = False,
-                      spp: int | None = None, pixel_filter: str | None = None) -> DenoiseResult:
+                      spp: int | None = None, pixel_filter: str | None = None,
+                      to_camera: np.ndarray | None = None) -> DenoiseResult:
         """Denoise HxWx3 linear radiance (any float dtype) with :func:`denoise.chain.denoise_image`.
 
+        ``normals`` are world-space (Mitsuba's ``sh_normal``); a model that takes them in the
+        camera's frame (``aux_normals="camera"``) needs ``to_camera``, the 3x3 rotation of
+        :func:`rendering.camera.sensor_rotation` (a :class:`DenoiserError` without it).
         ``variance``: HxWx3 variance of ``rgb``'s Monte Carlo estimate (a render made of two
         halves, :func:`rendering.render.render_loaded`); given, the output is blended with the
         render where the render's noise does not explain the change (:mod:`denoise.noise_guard`).
@@ -428,16 +432,21 @@ class Denoiser:
                 if np.shape(buffer) != rgb.shape:
                     raise DenoiserError(f"AOV shape {np.shape(buffer)} differs from image {rgb.shape}")
             aux = (np.asarray(albedo), np.asarray(normals))
+            if to_camera is None and any(m.config.aux_normals == "camera" for m in self.members):
+                raise DenoiserError(f"model {self.name} takes normals in the camera's frame: give the camera's "
+                                    "rotation (to_camera; a file holds none)")
         if variance is not None and np.shape(variance) != rgb.shape:
             raise DenoiserError(f"variance shape {np.shape(variance)} differs from image {rgb.shape}")
         count = [0]
         exposure = image_exposure(rgb, self.max_bytes)  # once for every member and the energy correction
 
         def run(member: Network) -> np.ndarray:
+            camera = member.config.aux_inputs and member.config.aux_normals == "camera"
             return denoise_image(member.net, rgb, aux, self.cores(height, width, member),
                                  progress=lambda n, total: count.__setitem__(0, count[0] + (n == total) * total),
                                  variance=variance, skip_below=self.skip_below, max_bytes=self.max_bytes,
-                                 flips=self.flips, exposure=exposure)
+                                 flips=self.flips, exposure=exposure,
+                                 normals_rotation=to_camera if camera else None)
 
         noise = noise_stats(rgb)
         members = self.active(spp, noise.level)
@@ -493,7 +502,8 @@ class Denoiser:
         noise guard at the strength for its spp (:meth:`denoise_array` with ``variance=render.variance,
         spp=render.spp`` gives the same image). ``keep_network`` as in :meth:`denoise_array`."""
         return self.denoise_array(render.rgb, render.aovs.get("albedo"), render.aovs.get("sh_normal"),
-                                  render.variance, None, keep_network, render.spp, render.pixel_filter)
+                                  render.variance, None, keep_network, render.spp, render.pixel_filter,
+                                  render.to_camera)
 
     def __call__(self, noisy: Any, albedo: Any = None, normals: Any = None, spp: int | None = None) -> Any:
         """Denoise a numpy array, torch tensor, ``mi.TensorXf`` or ``mi.Bitmap`` (HxWx3, or HxWx4

@@ -22,6 +22,11 @@ encoder/decoder shape allows:
 * **The predicted filter** (``kernel`` > 0): its coefficients' conv1x1 reads the tail's BN-ReLU
   output like the tail; the filter runs in float32 a band of rows at a time, each band's
   coefficients pixel-shuffled on their own (:func:`model.unet.add_kernel_`).
+* **Albedo and normal** (:mod:`model.aux_input`): the stem and skip convs read the whole unshuffled
+  input, their weights zero on the columns ``aux_mode`` keeps from them; ``levels`` mode adds its
+  convs of the buffers at each level's entry (level 0's reads the whole unshuffled input, zero on
+  the other columns), ``kernel`` mode adds its branch to the coefficients; the prefilter runs on
+  the input first.
 * **Optionally bfloat16** (``dtype``, :mod:`denoise.precision`): weights and activations; the input
   is built and the residual added in float32.
 * **Unshuffle and shuffle as strided copies.** The network input (RGB, its gradients, the rest)
@@ -42,9 +47,24 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from model.config import ModelConfig
+from model.aux_input import pooled_buffers, prefiltered, widen_weight
+from model.config import AUX_CHANNELS, ModelConfig
 from denoise.inference_net import _AffineReLU, _ClampConv1x1, _Conv, bn_affine, fold_conv_bn, padded_input
 from model.unet import Block, MultiScaleDenoiser, add_kernel_, alignment
+
+
+def _whole_input(conv: nn.Conv2d, config: ModelConfig) -> nn.Conv2d:
+    """``conv`` (the stem's or the skip's) as a conv over the whole unshuffled network input:
+    itself where it reads it all, else a copy zero on the columns of the albedo and normal."""
+    if conv.in_channels == 4 * config.in_channels:
+        return conv
+    wide = nn.Conv2d(4 * config.in_channels, conv.out_channels, conv.kernel_size, padding=conv.padding,
+                     bias=conv.bias is not None)
+    with torch.no_grad():
+        wide.weight.copy_(widen_weight(conv.weight, config))
+        if conv.bias is not None:
+            wide.bias.copy_(conv.bias)
+    return wide
 
 
 class _FoldedBlock(nn.Module):
@@ -131,7 +151,7 @@ class InferenceUNet(nn.Module):
             conv0, bn0, _ = model.stem
             order_in = shuffle_order(model.config.in_channels)  # stem and skip read block-major input
             order_out = shuffle_order(3)  # tail and skip write block-major output
-            weight, bias = fold_conv_bn(conv0, bn0)
+            weight, bias = fold_conv_bn(_whole_input(conv0, model.config), bn0)
             self.stem = _Conv(weight[:, order_in], bias, relu=True)
             self.enc = nn.ModuleList(_FoldedBlock(b) for b in model.enc)
             self.enc_width = [b.out_channels for b in model.enc]
@@ -164,8 +184,22 @@ class InferenceUNet(nn.Module):
             if model.kernel is not None:  # writes pixel_shuffle's order: add_kernel_ shuffles it band by band
                 weight = model.kernel.weight.detach()[:, orders[0]] if self.dense else model.kernel.weight.detach()
                 self.kernel = _Conv(weight.clone(), model.kernel.bias.detach().clone(), relu=False)
-            self.skip = _Conv(model.skip.weight.detach()[order_out][:, order_in].clone(),
+            self.skip = _Conv(_whole_input(model.skip, model.config).weight.detach()[order_out][:, order_in].clone(),
                               model.skip.bias.detach()[order_out].clone(), relu=False)
+            self.aux_levels = None if model.aux_levels is None else nn.ModuleList(
+                _Conv((widen_weight(conv.weight.detach(), model.config, "aux")[:, order_in] if i == 0
+                       else conv.weight.detach()).clone(), None, relu=False)
+                for i, conv in enumerate(model.aux_levels.convs))
+            self.aux_kernel = None
+            if model.aux_kernel is not None:
+                branch = model.aux_kernel
+                weight = branch.from_features.weight.detach()
+                self.aux_kernel = nn.ModuleList([
+                    _Conv((weight[:, orders[0]] if self.dense else weight).clone(),
+                          branch.from_features.bias.detach().clone(), relu=False),
+                    _Conv(widen_weight(branch.from_aux.weight.detach(), model.config, "aux")[:, order_in].clone(), None,
+                          relu=False),
+                    _Conv(branch.out.weight.detach().clone(), branch.out.bias.detach().clone(), relu=False)])
             self.head = None if model.head is None else nn.Sequential(
                 *(_Conv(conv.weight.detach().clone(), conv.bias.detach().clone(), relu=i == 0)
                   for i, conv in enumerate((model.head[0], model.head[2]))))
@@ -216,23 +250,40 @@ class InferenceUNet(nn.Module):
         clamp input (:attr:`clamp_widths` x pixels of its level; level i has (h >> i) x (w >> i))."""
         return n * max(c * (h >> i) * (w >> i) for i, c in enumerate(self.clamp_widths))
 
+    def _level_buffers(self, padded: torch.Tensor, raw: torch.Tensor) -> list[torch.Tensor] | None:
+        """``levels`` mode: the input each level's buffer conv reads (level 0 the whole unshuffled
+        input, the others :func:`model.aux_input.pooled_buffers`'s averages), in the net's dtype."""
+        if self.aux_levels is None:
+            return None
+        pooled = pooled_buffers(padded[..., 9:9 + AUX_CHANNELS].permute(0, 3, 1, 2), self.config.levels)
+        return [raw] + [p.to(self.dtype).contiguous(memory_format=torch.channels_last) for p in pooled]
+
+    def _inject(self, x: torch.Tensor, level: int, buffers: list[torch.Tensor] | None) -> torch.Tensor:
+        return x if buffers is None else x + self.aux_levels[level](buffers[level])
+
     def forward(self, image: torch.Tensor) -> torch.Tensor:
         h, w = image.shape[-2:]
+        if self.config.aux_inputs and self.config.aux_prefilter != "none":
+            image = prefiltered(image)
         padded, raw = unshuffled_input(image, alignment(self.config), self.dtype)
+        buffers = self._level_buffers(padded, raw)
         x = self.stem(raw)
         scratch = torch.empty(self.scratch_elements(x.shape[0], *x.shape[-2:]), dtype=self.dtype)
         levels = []
         for i, down in enumerate(self.down):
-            buf = self._encode(x, i, scratch)
+            buf = self._encode(self._inject(x, i, buffers), i, scratch)
             levels.append(buf)
             e = self.enc_width[i]
             x = down.conv(F.avg_pool2d(down.clamp(buf[:, :e], scratch), 2))
-        x = self._bottom(x, scratch)
+        x = self._bottom(self._inject(x, len(self.down), buffers), scratch)
         for i in reversed(range(len(levels))):
             x = self._decode(x, levels[i], i, scratch)
         features = self.tail_pre(x, scratch)
         y = self.tail(features)
         coefficients = None if self.kernel is None else self.kernel(features)
+        if self.aux_kernel is not None:
+            from_features, from_aux, out = self.aux_kernel
+            coefficients += out(from_features(features).add_(from_aux(raw)).relu_())
         y += self.skip(raw)
         out = shuffled_output(y, h, w)
         out = out + image[:, :3] if self.config.output == "residual" else out

@@ -10,7 +10,8 @@ import torch
 from torch import nn
 
 from model import unet
-from model.config import ModelConfig
+from model.aux_input import KERNEL_HIDDEN
+from model.config import AUX_CHANNELS, ModelConfig
 from model.network import FlatDenseNet
 
 
@@ -93,12 +94,18 @@ def _unet_live_channels(config: ModelConfig) -> float:
         busy = [2 * plan.width[i] * 3 + plan.mid[i] for i in range(n + 1)]  # upsampled, concatenated, x, clamp
     buffers = sum(c * s for c, s in zip(kept, share))
     taps = config.kernel_taps  # the predicted filter's coefficients per pixel
+    mode = config.aux_mode if config.aux_inputs else None
+    if mode == "levels":  # the buffers at every level, kept from the start (model.aux_input)
+        buffers += 4 * AUX_CHANNELS * share[0] + AUX_CHANNELS * sum(share[1:])
+    branch = 2 * KERNEL_HIDDEN + 4 * taps if mode == "kernel" else 0  # its hidden layer's two parts, output
     temporaries = max(max(b * s for b, s in zip(busy, share)),  # the tail: BN-ReLU copy, two 12-channel
-                      (kept[0] + 24 + 4 * taps) * share[0] + 6)  # convs, the coefficients, output
+                      (kept[0] + 24 + 4 * taps + branch) * share[0] + 6)  # convs, the coefficients, output
+    # the prefilter: the filtered copy of the input beside it, and its full-resolution temporaries
+    prefilter = 2 * cimg + 6 * AUX_CHANNELS if config.aux_inputs and config.aux_prefilter != "none" else 0
     # the head: the output, its input (output and network input, concatenated and a channels_last
     # copy), its hidden channels and its output, beside the network input and the output
     head = cimg + config.in_channels + 3 + 2 * (3 + config.in_channels) + config.head + 3 if config.head else 0
     # the filter: the output and its coefficients at half resolution (model.unet.add_kernel_ works a
     # band of rows at a time: its temporaries are a few rows')
     kernel = base + 3 + taps * share[0] * 4 if taps else 0
-    return max(inputs, base + buffers + temporaries, head, kernel)
+    return max(inputs, base + buffers + temporaries, head, kernel, prefilter)

@@ -36,6 +36,13 @@ UNET_ARCHS = ("dense_unet", "plain_unet")
 MAX_LEVELS = 6
 MAX_KERNEL = 15  # the predicted filter of the multi-scale archs (ModelConfig.kernel)
 NOISE_CHANNELS = 4  # transfer-space noise std per RGB channel + "the noise is known" flag
+AUX_CHANNELS = 6  # albedo RGB + normal XYZ, channels 3:9 of the image tensor
+# where a multi-scale net's albedo/normal reach it (model.aux_input): the stem and the input skip
+# ("stem"), the stem only ("noskip"), every encoder level's input ("levels"), or only the predicted
+# filter's coefficients ("kernel")
+AUX_MODES = ("stem", "noskip", "levels", "kernel")
+AUX_NORMALS = ("world", "camera")  # the frame the normals are given in (model.aux_input)
+AUX_PREFILTERS = ("none", "bilateral")  # what the network does to the buffers first (model.aux_input)
 OUTPUTS = ("residual", "direct")
 TRANSFERS = ("log", "pu")
 
@@ -64,8 +71,14 @@ class ModelConfig:
     convs on its output and the network input, :mod:`model.unet`); 0 for none. ``kernel``: multi-scale
     archs with residual output only, the odd size k of a per-pixel filter the network predicts and
     applies to the input RGB at full resolution (:func:`model.unet.apply_kernel`); 0 for none.
-    Defaults: the paper's sizes, log transfer, residual output (the network predicts only the
-    correction, which starts near the identity).
+    ``aux_mode``, ``aux_normals``, ``aux_prefilter`` (with ``aux_inputs`` only; :mod:`model.aux_input`):
+    where a multi-scale net's albedo and normal reach it (``stem``: the stem and the input skip;
+    ``noskip``: the stem only; ``levels``: every encoder level's input, not the stem; ``kernel``:
+    only the predicted filter's coefficients), the frame of the normals it is given (``world`` as
+    Mitsuba renders them, or ``camera``: the sensor's frame, :mod:`rendering.camera`) and a fixed
+    filter it applies to both buffers first (``none`` or ``bilateral``). Defaults: the paper's
+    sizes, log transfer, residual output (the network predicts only the correction, which starts
+    near the identity).
     """
 
     arch: str = "densenet"
@@ -81,6 +94,9 @@ class ModelConfig:
     noise_radius: int = 0
     head: int = 0
     kernel: int = 0
+    aux_mode: str = "stem"
+    aux_normals: str = "world"
+    aux_prefilter: str = "none"
 
     def __post_init__(self) -> None:
         if self.arch not in ARCHS:
@@ -114,6 +130,25 @@ class ModelConfig:
             raise ConfigError(f"model kernel must be 0 or an odd integer in 3..{MAX_KERNEL}, got {self.kernel!r}")
         if self.kernel and (not self.multiscale or self.output != "residual" or self.head):
             raise ConfigError("model kernel needs a multi-scale arch with residual output and no head")
+        self._check_aux()
+
+    def _check_aux(self) -> None:
+        for name, known in (("aux_mode", AUX_MODES), ("aux_normals", AUX_NORMALS), ("aux_prefilter", AUX_PREFILTERS)):
+            if getattr(self, name) not in known:
+                raise ConfigError(f"unknown model {name} {getattr(self, name)!r} (known: {', '.join(known)})")
+        changed = [f"{name} {getattr(self, name)!r}" for name, default in
+                   (("aux_mode", "stem"), ("aux_normals", "world"), ("aux_prefilter", "none"))
+                   if getattr(self, name) != default]
+        if changed and not self.aux_inputs:
+            raise ConfigError(f"model {', '.join(changed)} needs aux_inputs (albedo and normal)")
+        multiscale_only = [f"{name} {getattr(self, name)!r}" for name, default in
+                     (("aux_mode", "stem"), ("aux_prefilter", "none")) if getattr(self, name) != default]
+        if multiscale_only and not self.multiscale:
+            raise ConfigError(f"model {', '.join(multiscale_only)} needs a multi-scale arch (not {self.arch})")
+        if self.aux_mode != "stem" and self.head:
+            raise ConfigError(f"model aux_mode {self.aux_mode!r} needs no head (the head reads the buffers)")
+        if self.aux_mode == "kernel" and not self.kernel:
+            raise ConfigError("model aux_mode 'kernel' needs a predicted filter (kernel > 0)")
 
     @property
     def kernel_taps(self) -> int:
@@ -131,16 +166,34 @@ class ModelConfig:
         return self.image_channels + 6
 
     @property
+    def stem_channels(self) -> int:
+        """Channels of the network input the multi-scale stem reads: all of them, but the
+        albedo and normal where ``aux_mode`` keeps them from the stem (``levels``, ``kernel``)."""
+        return self.in_channels - AUX_CHANNELS * (self.aux_inputs and self.aux_mode in ("levels", "kernel"))
+
+    @property
+    def skip_channels(self) -> int:
+        """Channels of the network input the multi-scale input skip reads: all of them, but the
+        albedo and normal where ``aux_mode`` is not ``stem``."""
+        return self.in_channels - AUX_CHANNELS * (self.aux_inputs and self.aux_mode != "stem")
+
+    @property
     def image_channels(self) -> int:
         """Channels of the image tensor the model takes: RGB (+ albedo RGB + normal XYZ)
         (+ noise RGB + flag): 3, 7, 9 or 13, in that order."""
-        return 3 + 6 * self.aux_inputs + NOISE_CHANNELS * self.noise_input
+        return 3 + AUX_CHANNELS * self.aux_inputs + NOISE_CHANNELS * self.noise_input
 
     @property
     def color_groups(self) -> tuple[int, ...]:
         """First channels of the image tensor's colour triplets (RGB, albedo, noise RGB): the
         channels an RGB permutation (augmentation) must permute alike."""
         return (0,) + ((3,) if self.aux_inputs else ()) + ((self.noise_start,) if self.noise_input else ())
+
+    @property
+    def camera_normals(self) -> int | None:
+        """Index of the image tensor's normal XYZ when they are in the camera's frame (training's
+        flips and transposes turn them with the image), else None."""
+        return 3 + 3 if self.aux_inputs and self.aux_normals == "camera" else None
 
     @property
     def noise_start(self) -> int:

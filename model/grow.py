@@ -12,6 +12,10 @@ A checkpoint of the very same model config (e.g. a multi-scale net) is copied as
 without the full-resolution head (:func:`model.unet.make_head`) is copied into the same net with
 one, or with the predicted filter (``ModelConfig.kernel``): the head's last conv and the filter's
 coefficients start at zero, so the grown net, too, starts by computing the source's output.
+A multi-scale net without albedo and normal inputs is copied into the same net with them, in
+any ``aux_mode`` (:mod:`model.aux_input`): the stem's and skip's weights on the buffers and the
+buffers' branches' last convs are zero, so the grown net computes exactly (bit for bit, in eval
+mode) the source's output whatever the buffers hold, and learns to use them from there.
 
 The other way, a model with fewer layers takes the source's head, its first layers and the tail's
 BatchNorm and conv weights on their channels (:func:`shrink_model`): a prefix of the trained block.
@@ -26,6 +30,7 @@ import dataclasses
 import torch
 
 from imaging.errors import ConfigError
+from model.aux_input import widen_weight
 from model.config import ModelConfig
 
 _SAME = ("arch", "growth", "init_features", "bottleneck", "transfer", "output", "aux_inputs")
@@ -66,12 +71,41 @@ def grow_model(target: torch.nn.Module, source: torch.nn.Module) -> None:
     if target.config.multiscale and gains_output:
         target.load_state_dict(source.state_dict(), strict=False)  # all but the new head or filter
         return
+    if target.config.multiscale and not same.aux_inputs and _without_aux(target.config) == same:
+        add_aux(target, source)
+        return
     if target.config.arch == source.config.arch == "densenet" and target.config.layers < source.config.layers:
         shrink_model(target, source)
         return
     check_growable(source.config, target.config)
     target.tail[-1].weight.zero_()  # the new layers' outputs start unused
     _copy_prefix(target, source, len(source.body.layers))
+
+
+def _without_aux(config: ModelConfig) -> ModelConfig:
+    """``config`` without albedo and normal inputs (and the options that go with them)."""
+    return dataclasses.replace(config, aux_inputs=False, aux_mode="stem", aux_normals="world", aux_prefilter="none")
+
+
+@torch.no_grad()
+def add_aux(target: torch.nn.Module, source: torch.nn.Module) -> None:
+    """Copy the multi-scale RGB net ``source`` into ``target``, the same net with albedo and normal
+    inputs: every weight of ``source`` in its place, the stem's and skip's columns on the buffers
+    (``stem`` mode; ``noskip``: the stem's) zero, the branches of ``levels`` and ``kernel`` mode with
+    their last conv zero (:mod:`model.aux_input`). Raises :class:`ConfigError` unless ``target``'s
+    config is ``source``'s with the buffers."""
+    source_config = dataclasses.replace(source.config, noise_radius=target.config.noise_radius)
+    if not (target.config.multiscale and target.config.aux_inputs and not source.config.aux_inputs
+            and _without_aux(target.config) == source_config):
+        raise ConfigError("cannot add albedo/normal inputs: the model is not the source with them")
+    state = target.state_dict()
+    for key, value in source.state_dict().items():
+        if state[key].shape != value.shape:  # the stem or skip reads the buffers too
+            value = widen_weight(value, target.config)
+        state[key].copy_(value)
+    for branch in (target.aux_levels, target.aux_kernel):
+        if branch is not None:
+            branch.start_at_zero()
 
 
 @torch.no_grad()

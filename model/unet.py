@@ -23,6 +23,9 @@ Tiramisu") and of OIDN's U-Net, built so that nothing heavy runs at full resolut
        denoisers, Bako et al. 2017, without their softmax, so that it starts at zero: the
        coefficients' conv starts at zero and the network starts as the one without it)
 
+With albedo and normal inputs, ``aux_mode`` says which of these steps read them and
+``aux_prefilter`` what is done to them first (:mod:`model.aux_input`).
+
 A *block* is ``layers`` of the paper's bottleneck layers (BN-ReLU-Conv1x1-BN-ReLU-Conv3x3), their
 outputs concatenated (``dense_unet``), or, for the science table's plain network
 (``plain_unet``), the same layers chained at a constant width without concatenation, widths
@@ -46,6 +49,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from model import aux_input
 from model.config import ModelConfig
 from model.network import BottleneckLayer, init_weights, network_input
 
@@ -121,9 +125,9 @@ class MultiScaleDenoiser(nn.Module):
             plain_scale = 1.0 if dense else plain_width_scale(config)
         plan = _Widths(config, plain_scale)
         n, layers = config.levels, config.layers
-        cin4 = 4 * config.in_channels
         w = plan.width
-        self.stem = nn.Sequential(nn.Conv2d(cin4, w[0], 3, padding=1, bias=False), nn.BatchNorm2d(w[0]),
+        self.stem = nn.Sequential(nn.Conv2d(4 * config.stem_channels, w[0], 3, padding=1, bias=False),
+                                  nn.BatchNorm2d(w[0]),
                                   nn.ReLU(inplace=True))
 
         def block(cin: int, level: int) -> Block:
@@ -144,7 +148,7 @@ class MultiScaleDenoiser(nn.Module):
             below = self.dec[-1].out_channels
         self.tail_bn = nn.BatchNorm2d(below)
         self.tail = nn.Conv2d(below, 12, 3, padding=1, bias=False)
-        self.skip = nn.Conv2d(cin4, 12, 3, padding=1, bias=True)
+        self.skip = nn.Conv2d(4 * config.skip_channels, 12, 3, padding=1, bias=True)
         init_weights(self)
         if config.output == "residual":
             # the correction starts at zero: the untrained model is the identity
@@ -157,28 +161,73 @@ class MultiScaleDenoiser(nn.Module):
             self.kernel = nn.Conv2d(below, 4 * config.kernel_taps, 1, bias=True)
             nn.init.zeros_(self.kernel.weight)
             nn.init.zeros_(self.kernel.bias)
+        mode = config.aux_mode if config.aux_inputs else None
+        self.aux_levels = aux_input.LevelInjection(w) if mode == "levels" else None
+        self.aux_kernel = aux_input.KernelBranch(below, config.kernel_taps) if mode == "kernel" else None
+        # the columns of a stem or skip weight reading both (``stem``, ``noskip``) that the RGB part
+        # and the buffers meet
+        self.aux_columns = aux_input.aux_columns(config) if config.aux_inputs else None
 
     def forward(self, image: torch.Tensor) -> torch.Tensor:
         h, w = image.shape[-2:]
+        if self.config.aux_inputs and self.config.aux_prefilter != "none":
+            image = aux_input.prefiltered(image)
         net_in = network_input(image)
-        raw = F.pixel_unshuffle(pad_to_alignment(net_in, alignment(self.config)), 2)
-        x = self.stem(raw)
+        raw_aux, levels = None, None
+        if self.config.aux_inputs:
+            raw, raw_aux, levels = self._split(net_in)
+            x = self.stem[2](self.stem[1](self._stem_conv(raw, raw_aux)))
+        else:
+            raw = F.pixel_unshuffle(pad_to_alignment(net_in, alignment(self.config)), 2)
+            x = self.stem(raw)
         skips = []
-        for enc, down in zip(self.enc, self.down):
-            x = enc(x)
+        for i, (enc, down) in enumerate(zip(self.enc, self.down)):
+            x = enc(x if self.aux_levels is None else self.aux_levels(x, i, levels))
             skips.append(x)
             x = F.avg_pool2d(down(x), 2)
-        x = self.bottom(x)
+        x = self.bottom(x if self.aux_levels is None else self.aux_levels(x, len(self.enc), levels))
         for up, dec in zip(self.up, self.dec):
             x = dec(torch.cat([F.interpolate(up(x), scale_factor=2.0, mode="nearest"), skips.pop()], dim=1))
         features = F.relu(self.tail_bn(x))
-        x = self.tail(features) + self.skip(raw)
+        x = self.tail(features) + self._skip(raw, raw_aux)
         out = F.pixel_shuffle(x, 2)[..., :h, :w]
         if self.kernel is not None:
-            coefficients = F.pixel_shuffle(self.kernel(features), 2)[..., :h, :w]
+            coefficients = self.kernel(features)
+            if self.aux_kernel is not None:
+                coefficients = coefficients + self.aux_kernel(features, raw_aux)
+            coefficients = F.pixel_shuffle(coefficients, 2)[..., :h, :w]
             out = out + apply_kernel(image[:, :3], coefficients, self.config.kernel)
         out = out + image[:, :3] if self.config.output == "residual" else out
         return out if self.head is None else out + self.head(torch.cat([out, net_in], dim=1))
+
+    def _split(self, net_in: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, list[torch.Tensor] | None]:
+        """The 2x2 unshuffles of the padded network input without the albedo and normal and of
+        those alone, and (``levels`` mode) the buffers at every level (:func:`aux_input.pooled_buffers`)."""
+        main, aux = aux_input.split_input(net_in)
+        align = alignment(self.config)
+        aux = pad_to_alignment(aux, align)
+        raw_aux = F.pixel_unshuffle(aux, 2)
+        levels = [raw_aux, *aux_input.pooled_buffers(aux, self.config.levels)] if self.aux_levels is not None else None
+        return F.pixel_unshuffle(pad_to_alignment(main, align), 2), raw_aux, levels
+
+    def _stem_conv(self, raw: torch.Tensor, raw_aux: torch.Tensor) -> torch.Tensor:
+        """The stem conv (before its BN) of a net with buffers: on the RGB part, plus on the
+        buffers where ``aux_mode`` lets them in (one weight, its columns split)."""
+        conv = self.stem[0]
+        if conv.in_channels == raw.shape[1]:
+            return conv(raw)
+        main, aux = self.aux_columns
+        return (F.conv2d(raw, conv.weight[:, main].contiguous(), padding=1)
+                + F.conv2d(raw_aux, conv.weight[:, aux].contiguous(), padding=1))
+
+    def _skip(self, raw: torch.Tensor, raw_aux: torch.Tensor | None) -> torch.Tensor:
+        """The input skip conv: on the unshuffled input (with buffers: on its RGB part, plus on
+        the buffers in ``stem`` mode, one weight, its columns split)."""
+        if self.skip.in_channels == raw.shape[1]:
+            return self.skip(raw)
+        main, aux = self.aux_columns
+        return (F.conv2d(raw, self.skip.weight[:, main].contiguous(), self.skip.bias, padding=1)
+                + F.conv2d(raw_aux, self.skip.weight[:, aux].contiguous(), padding=1))
 
 
 KERNEL_ROWS = 64  # rows of a band of add_kernel_ (720p, two threads: 39 ms a call at 64 or 128, 45 at 16)
@@ -306,7 +355,11 @@ def receptive_radius(config: ModelConfig) -> int:
         r += config.layers * jump
     r += jump + 1  # tail / skip conv3x3 at half resolution, pixel-shuffle cell
     r = r + 2 if config.head else r  # the head's two conv3x3 at full resolution
-    return max(r, config.kernel // 2)  # the predicted filter reads its k x k neighbours
+    # the predicted filter reads its k x k neighbours; the buffers' paths of aux_mode levels and
+    # kernel (a cell and a conv3x3 at a level's entry) reach no further than the stem's path there
+    # (its unshuffle cell, conv3x3 and the levels above, each at least one layer), but a
+    # prefilter first looks its radius further
+    return max(r, config.kernel // 2) + aux_input.prefilter_reach(config)
 
 
 def conv_macs_per_pixel(model: nn.Module, height: int = 64, width: int = 64) -> float:
@@ -346,7 +399,6 @@ def macs_per_pixel(config: ModelConfig, plain_scale: float | None = None, pool_f
     n, layers, b = config.levels, config.layers, config.bottleneck
     w = plan.width
     share = [0.25 ** (i + 1) for i in range(n + 1)]  # pixels of level i per input pixel
-    cin4 = 4 * config.in_channels
 
     def block(cin: int, i: int) -> tuple[float, int]:
         k, mid = plan.growth[i], plan.mid[i]
@@ -355,7 +407,7 @@ def macs_per_pixel(config: ModelConfig, plain_scale: float | None = None, pool_f
         macs = sum((cin + j * k) * mid + 9 * mid * k for j in range(layers))
         return macs * share[i], cin + layers * k
 
-    total = 9 * cin4 * w[0] * share[0]
+    total = 9 * 4 * config.stem_channels * w[0] * share[0]
     enc_out = []
     for i in range(n):
         macs, e = block(w[i], i)
@@ -367,9 +419,21 @@ def macs_per_pixel(config: ModelConfig, plain_scale: float | None = None, pool_f
         total += below * w[i] * share[i + 1]
         macs, below = block(w[i] + enc_out[i], i)
         total += macs
-    total += 9 * (below + cin4) * 12 * share[0]
+    total += 9 * (below + 4 * config.skip_channels) * 12 * share[0]
     total += below * 4 * config.kernel_taps * share[0]  # the filter's coefficients
+    total += _aux_macs(config, w, below, share)
     return total + 9 * (3 + config.in_channels + 3) * config.head
+
+
+def _aux_macs(config: ModelConfig, width: list[int], below: int, share: list[float]) -> float:
+    """Multiply-accumulates per input pixel of the convs of :mod:`model.aux_input`'s branches."""
+    if not config.aux_inputs or config.aux_mode not in ("levels", "kernel"):
+        return 0.0
+    raw = 4 * aux_input.AUX_CHANNELS
+    if config.aux_mode == "levels":
+        return sum(9 * (raw if i == 0 else aux_input.AUX_CHANNELS) * c * share[i] for i, c in enumerate(width))
+    hidden = aux_input.KERNEL_HIDDEN
+    return (below * hidden + 9 * raw * hidden + hidden * 4 * config.kernel_taps) * share[0]
 
 
 @functools.lru_cache(maxsize=64)

@@ -1,4 +1,4 @@
 """Rendering with Mitsuba 3: the LLVM backend and variant (``backend``), scene files with their
 includes inlined and a box filter with a float32 film forced (``scene_io``), renders at a given spp,
-seed and resolution, in two halves or with AOVs (``render``), and renders in crops under a memory
-bound (``render_crops``). Uses only :mod:`imaging`."""
+seed and resolution, in two halves or with AOVs (``render``), renders in crops under a memory
+bound (``render_crops``), and the sensor's frame that normals turn into (``camera``). Uses only :mod:`imaging`."""

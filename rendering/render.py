@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from rendering.backend import select_variant
+from rendering.camera import sensor_rotation
 from imaging.errors import RenderError, SceneError
 from imaging.memory_limit import require_memory
 from rendering.render_crops import (IMAGE_BYTES_PER_PIXEL, Crop, crop_layout, crop_seed, cropped, film_window,
@@ -49,6 +50,8 @@ class RenderResult:
     variance: np.ndarray | None = None  # HxWx3 variance of ``rgb``'s estimate (``halves`` renders)
     crops: int = 1  # film crops rendered one after the other (rendering.render_crops)
     pixel_filter: str = "box"  # the film's reconstruction filter (a box unless the prepared scene named another)
+    # 3x3 rotation taking world directions into the sensor's frame (rendering.camera; None: unknown)
+    to_camera: np.ndarray | None = None
 
 
 def _one_line(exc: BaseException) -> str:
@@ -317,7 +320,16 @@ def render_loaded(
     seconds = time.perf_counter() - start
     return RenderResult(rgb=outputs[0], aovs=dict(zip(aovs, outputs[1:])), spp=spp, seed=seed,
                         nonfinite=nonfinite, seconds=seconds, variant=mi.variant(), variance=variance,
-                        crops=len(crops), pixel_filter=_FILTER_NAMES.get(filter_class(scene), filter_class(scene)))
+                        crops=len(crops), pixel_filter=_FILTER_NAMES.get(filter_class(scene), filter_class(scene)),
+                        to_camera=_to_camera(scene))
+
+
+def _to_camera(scene: Any) -> np.ndarray | None:
+    """The scene's :func:`rendering.camera.sensor_rotation`, None for a degenerate sensor transform."""
+    try:
+        return sensor_rotation(scene)
+    except SceneError:
+        return None
 
 
 def render(

@@ -194,6 +194,36 @@ def test_aov_model_needs_aovs(tmp_path: Path) -> None:
     np.testing.assert_allclose(called.numpy(), out, rtol=1e-6)
 
 
+def test_a_camera_normals_model_turns_world_normals_with_the_render_s_camera(tmp_path: Path) -> None:
+    """A model trained on camera-space normals is given world normals and the camera's rotation
+    (a render carries it): the same output as given the rotated normals (exactly; the network's
+    is the chain's), unlike the one given the world normals as they are; without the rotation,
+    one error."""
+    from denoise.chain import denoise_image
+    from rendering.camera import rotate_normals
+    from rendering.render import RenderResult
+    from tests.test_model_unet import trained_like
+
+    config = ModelConfig(arch="dense_unet", layers=1, growth=4, init_features=8, levels=2, transfer="pu", kernel=3,
+                         aux_inputs=True, aux_mode="levels", aux_normals="camera")
+    model = trained_like(config)
+    save_checkpoint(tmp_path / "camera.ckpt", model, step=0)
+    den = Denoiser(tmp_path / "camera.ckpt", optimize=False)
+    rng = np.random.default_rng(4)
+    img, albedo = _image(24, 20), rng.random((24, 20, 3), dtype=np.float32)
+    normals = rng.normal(size=(24, 20, 3)).astype(np.float32)
+    rotation = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])
+    with pytest.raises(DenoiserError, match="takes normals in the camera's frame: give the camera's rotation"):
+        den.denoise_array(img, albedo, normals)
+    got = den.denoise_render(RenderResult(rgb=img, aovs={"albedo": albedo, "sh_normal": normals}, spp=4,
+                                          to_camera=rotation)).image
+    want = den.denoise_array(img, albedo, rotate_normals(normals, rotation), spp=4, to_camera=np.eye(3)).image
+    np.testing.assert_array_equal(got, want)
+    assert not np.allclose(got, den.denoise_array(img, albedo, normals, spp=4, to_camera=np.eye(3)).image, atol=1e-4)
+    network = den.denoise_array(img, albedo, normals, spp=4, to_camera=rotation, keep_network=True).network
+    np.testing.assert_array_equal(network, denoise_image(model, img, (albedo, rotate_normals(normals, rotation))))
+
+
 @pytest.mark.parametrize("shape", [(1, 1), (1, 37), (29, 1), (17, 33)])
 def test_degenerate_and_odd_sizes(ckpt: Path, shape: tuple[int, int]) -> None:
     out = Denoiser(ckpt, max_memory_mb=0.05)(_image(*shape))

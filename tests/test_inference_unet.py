@@ -1,7 +1,8 @@
 """The folded multi-scale network (denoise.inference_unet) equals the training module in eval mode.
 
 Tolerance: transfer-space outputs within 2e-5 absolute (float32 rounding of the folded weights,
-other summation orders), at odd sizes, 1x1, with and without the noise and aux inputs.
+other summation orders), at odd sizes, 1x1, with and without the noise and aux inputs (each
+``aux_mode``, the prefilter).
 """
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ import pytest
 import torch
 
 from denoise.folded import prepare_for_inference
-from model.config import ModelConfig
+from model.config import AUX_MODES, ModelConfig
 from denoise.inference_unet import InferenceUNet, _upsample_into, shuffle_order, shuffled_output, unshuffled_input
 from model.network import network_input
 from model.unet import pad_to_alignment
@@ -28,8 +29,13 @@ NET_ATOL = 2e-5
     dataclasses.replace(TINY, levels=3, noise_input=True, head=6),
     dataclasses.replace(TINY, levels=3, noise_input=True, kernel=5),
     dataclasses.replace(TINY, arch="plain_unet", kernel=3),
+    *(dataclasses.replace(TINY, levels=3, kernel=3, noise_input=True, aux_inputs=True, aux_mode=mode,
+                          aux_prefilter="bilateral") for mode in AUX_MODES),
+    dataclasses.replace(TINY, arch="plain_unet", kernel=3, aux_inputs=True, aux_mode="levels"),
+    dataclasses.replace(TINY, arch="plain_unet", kernel=3, aux_inputs=True, aux_mode="kernel"),
 ], ids=["dense", "dense-noise", "plain-noise", "direct-aux-noise", "dense-noise-head", "dense-noise-kernel",
-        "plain-kernel"])
+        "plain-kernel", *(f"dense-noise-aux-{mode}-prefiltered" for mode in AUX_MODES), "plain-aux-levels",
+        "plain-aux-kernel"])
 @pytest.mark.parametrize("positive", [False, True], ids=["any-bn-scale", "positive-bn-scales"])
 def test_folded_unet_equals_the_training_module(config: ModelConfig, positive: bool) -> None:
     """Both ways of the clamp: BN scales of both signs (clamp) and all positive (one maximum)."""

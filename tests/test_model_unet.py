@@ -18,7 +18,8 @@ TINY = ModelConfig(arch="dense_unet", layers=1, growth=4, init_features=8, level
 
 
 def trained_like(config: ModelConfig, seed: int = 0, positive: bool = False) -> torch.nn.Module:
-    """A random multi-scale model with BN statistics of both signs and a non-zero tail, in eval mode."""
+    """A random multi-scale model with BN statistics of both signs and a non-zero tail (and
+    albedo/normal branches, model.aux_input), in eval mode."""
     torch.manual_seed(seed)
     model = build_model(config)
     randomize_batchnorm(model, 0.3, (0.3, 2.0), bias=0.3, positive=positive)
@@ -32,6 +33,9 @@ def trained_like(config: ModelConfig, seed: int = 0, positive: bool = False) -> 
         if model.kernel is not None:
             torch.nn.init.normal_(model.kernel.weight, std=0.05)
             torch.nn.init.uniform_(model.kernel.bias, -0.05, 0.05)
+        for conv in [*(model.aux_levels.convs if model.aux_levels is not None else ()),
+                     *((model.aux_kernel.out,) if model.aux_kernel is not None else ())]:
+            torch.nn.init.normal_(conv.weight, std=0.05)
     return model.eval()
 
 

@@ -56,6 +56,23 @@ def test_augmentation_identical_on_input_and_target(rng: np.random.Generator) ->
     assert len(seen) > 8  # several distinct flips/transposes/permutations occurred
 
 
+def test_camera_normals_turn_with_the_image(rng: np.random.Generator) -> None:
+    """A sphere centred in the patch, its camera-space normals (X toward the image's left, Y up):
+    every flip and transpose of it is the same sphere, so its normals must come back as they were
+    (exactly) when augmentation turns them; left as they are, most transforms break them."""
+    r, c = np.mgrid[0:8, 0:8].astype(np.float32) - 3.5
+    normals = np.stack([-c / 6, -r / 6, -np.sqrt(1 - (r * r + c * c) / 36)], axis=-1).astype(np.float32)
+    rgb = rng.random((8, 8, 3), dtype=np.float32)
+    noisy = np.concatenate([rgb, rgb, normals], axis=-1)
+    kept = 0
+    for _ in range(32):
+        turned, _ = augment(noisy, rgb, rng, camera_normals=6)
+        np.testing.assert_array_equal(turned[..., 6:9], normals)
+        left, _ = augment(noisy, rgb, rng)
+        kept += np.array_equal(left[..., 6:9], normals)
+    assert kept < 16  # only the identity (1 of 8 transforms) keeps them untouched
+
+
 def test_augmentation_moves_aux_consistently(rng: np.random.Generator) -> None:
     rgb = rng.random((6, 6, 3), dtype=np.float32)
     red = rgb[..., :1]

@@ -129,6 +129,22 @@ def test_a_stage_key_names_what_is_computed_not_what_it_is_called() -> None:
     assert [shipped[0].stage_key(s) for s in ("pretrain", "main")] == [shipped[1].stage_key(s) for s in ("pretrain", "flat")]
 
 
+def test_a_recipe_stage_can_warm_start_an_aux_arm_from_an_rgb_stage() -> None:
+    """The albedo/normal options are model fields: a stage names them and starts from the RGB stage."""
+    text = (TINY.replace("val_fraction = 0.5", "val_fraction = 0.5\naovs = [\"alb\", \"nrm\"]")
+            .replace('preset = "flat-s"\nmodel = { layers = 2 }', 'preset = "unet-s"\nmodel = { kernel = 3 }', 1)
+            .replace('init_from = "first"\npreset = "flat-s"\nmodel = { layers = 2 }',
+                     'init_from = "first"\npreset = "unet-s"\nmodel = { kernel = 3, aux_inputs = true, '
+                     'aux_mode = "levels", aux_normals = "camera", aux_prefilter = "bilateral" }'))
+    recipe = _parse(text)
+    first, second = recipe.stage("first").model, recipe.stage("second").model
+    assert recipe.datasets["tiny16"].config.aovs == ("alb", "nrm") and not first.aux_inputs
+    assert dataclasses.replace(second, aux_inputs=False, aux_mode="stem", aux_normals="world",
+                               aux_prefilter="none") == first
+    with pytest.raises(ConfigError, match="stage 'second': model aux_mode 'kernel' needs a predicted filter"):
+        _parse(text.replace("kernel = 3, aux_inputs", "kernel = 0, aux_inputs").replace('"levels"', '"kernel"'))
+
+
 def test_shipped_recipes_parse_and_start_from_scratch() -> None:
     """Every shipped recipe parses; its first stage starts from scratch and every later warm start
     names an earlier stage (so no stage needs a file no recipe makes)."""

@@ -218,6 +218,42 @@ def test_aux_model_end_to_end(tmp_path: Path) -> None:
     assert config.aux_inputs and config.in_channels == 15 and config.transfer == "pu"
 
 
+@pytest.fixture(scope="module")
+def camera_dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return write_synthetic_dataset(tmp_path_factory.mktemp("dsc"), scenes=2, res=(32, 32), spp=(4,), val_scenes=(1,),
+                                   aovs=True, cameras=True)
+
+
+@pytest.mark.parametrize("mode", ["stem", "noskip", "levels", "kernel"])
+def test_each_aux_arm_trains_from_an_rgb_net_with_camera_normals_and_a_prefilter(
+        camera_dataset: Path, tmp_path: Path, mode: str, capsys: pytest.CaptureFixture) -> None:
+    """``--aux --aux-mode M --aux-normals camera --aux-prefilter bilateral --init-from RGB``: the run
+    starts from the RGB net (its weights in place), trains and validates, its checkpoint records
+    the options; a resume may not change them."""
+    from model.architectures import build_model
+    from model.checkpoint import save_checkpoint
+    from model.config import ModelConfig
+
+    rgb = ModelConfig(arch="dense_unet", levels=2, layers=1, growth=4, init_features=8, transfer="pu", kernel=3)
+    torch.manual_seed(0)
+    source = tmp_path / "rgb.ckpt"
+    save_checkpoint(source, build_model(rgb), step=5)
+    run = tmp_path / "run"
+    rc = main(["--data", str(camera_dataset), "--out", str(run), "--arch", "dense_unet", "--levels", "2", "--layers",
+               "1", "--growth", "4", "--width", "8", "--kernel", "3", "--transfer", "pu", "--aux", "--aux-mode", mode,
+               "--aux-normals", "camera", "--aux-prefilter", "bilateral", "--init-from", str(source), "--steps", "2",
+               "--batch", "4", "--patch", "32", "--lr", "1e-4", "--val-every", "2", "--no-oidn", "--no-progress"])
+    assert rc == 0, capsys.readouterr().err
+    model, config, meta = load_model(run / "best.ckpt")
+    assert (config.aux_inputs, config.aux_mode, config.aux_normals, config.aux_prefilter) == \
+        (True, mode, "camera", "bilateral")
+    assert meta["train_config"]["model"]["aux_mode"] == mode and meta["train_config"]["init_from"] == str(source)
+    assert [r["psnr"] is not None for r in _log(run) if r["type"] == "val"] == [True]
+    capsys.readouterr()
+    assert main(["--out", str(run), "--resume", "--aux-mode", "stem", "--steps", "3"]) == 1
+    assert "--aux-mode cannot be combined with --resume" in capsys.readouterr().err
+
+
 def test_resume_refuses_a_different_dataset(dataset: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     cfg = _config(tmp_path, model=TINY_MODEL, batch=4, val_every=0, progress=False)
     run = tmp_path / "run"

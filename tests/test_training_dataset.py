@@ -109,3 +109,31 @@ def test_bad_manifest(tmp_path: Path) -> None:
     (tmp_path / "manifest.jsonl").write_text('{"index": 0, "split": "test", "spp": [4]}\n')
     with pytest.raises(DatasetError, match="bad index 0 or split 'test'"):
         read_manifest(tmp_path)
+
+
+def test_camera_normals_are_turned_into_each_scene_s_camera_frame(tmp_path: Path) -> None:
+    """``normals="camera"``: each scene's normals times the rotation of the sensor in its file
+    (the synthetic normal (0, 0.6, 0.8) everywhere; tolerance 1e-6); albedo and radiance as they were."""
+    from rendering.camera import world_to_camera
+    from tests.test_camera import look_at
+    from training.synthetic import camera_origin
+
+    data = write_synthetic_dataset(tmp_path / "ds", scenes=2, res=(8, 8), spp=(4,), val_scenes=(1,), aovs=True,
+                                   cameras=True)
+    records = read_manifest(data)
+    transfer = get_transfer("pu")
+    world = load_training_pairs(data, records[:1], transfer, aux=True)
+    pairs = load_training_pairs(data, records[:1], transfer, aux=True, normals="camera", converged=True)
+    images = load_val_images(data, records[1:], aux=True, normals="camera")
+    for index, got in ((0, pairs[0].noisy[..., 6:9]), (0, pairs[1].noisy[..., 6:9]), (1, images[0].aux[..., 3:])):
+        want = world_to_camera(look_at(list(camera_origin(index)), [0, 0, 0], [0, 1, 0])) @ [0.0, 0.6, 0.8]
+        np.testing.assert_allclose(got, np.broadcast_to(want, got.shape), atol=1e-6)
+    np.testing.assert_array_equal(pairs[0].noisy[..., :6], world[0].noisy[..., :6])
+    assert not np.allclose(pairs[0].noisy[..., 6:], world[0].noisy[..., 6:], atol=0.1)
+
+
+def test_camera_normals_without_the_scene_file_are_one_error(tmp_path: Path) -> None:
+    data = write_synthetic_dataset(tmp_path / "ds", scenes=1, res=(8, 8), spp=(4,), val_scenes=(), aovs=True)
+    with pytest.raises(DatasetError, match=r"scene 0: normals in camera space need the scene's file, .*scene\.xml: "
+                                           "not found"):
+        load_training_pairs(data, read_manifest(data), get_transfer("pu"), aux=True, normals="camera")

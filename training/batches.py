@@ -80,7 +80,8 @@ class BatchSource:
     def _make(self, step: int) -> tuple[np.ndarray, np.ndarray]:
         rng = np.random.default_rng([self.config.seed, step])
         model = self.config.model
-        noisy, ref = sample_batch(self.pairs, self.config.batch, self.config.patch, rng, model.color_groups)
+        noisy, ref = sample_batch(self.pairs, self.config.batch, self.config.patch, rng, model.color_groups,
+                                  model.camera_normals)
         if model.noise_input:
             drop_noise(noisy, model.noise_start, self.config.noise_dropout, rng)
         return noisy, ref

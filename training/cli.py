@@ -28,7 +28,7 @@ from imaging.json_read import parse_json
 from imaging.output_paths import check_not_inputs
 from console.progress import tqdm_bars
 from console.usage import OneLineParser
-from model.config import ARCHS, PRESETS, UNET_ARCHS, ModelConfig, preset
+from model.config import ARCHS, AUX_MODES, AUX_NORMALS, AUX_PREFILTERS, PRESETS, UNET_ARCHS, ModelConfig, preset
 from model.device import DEVICES
 from training.distributed import RankInfo, ddp_config, launch, rank_from_env, train_distributed
 from training.recipe import load_recipe, recipe_names
@@ -62,7 +62,7 @@ def _preset_name(text: str) -> str:
         raise argparse.ArgumentTypeError(str(exc)) from None
     return text
 _MODEL_FLAGS = ("arch", "transfer", "output", "aux_inputs", "noise_input", "noise_radius", "levels", "layers",
-                "growth", "init_features", "head", "kernel")
+                "growth", "init_features", "head", "kernel", "aux_mode", "aux_normals", "aux_prefilter")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -121,6 +121,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--transfer", choices=["log", "pu"])
     p.add_argument("--output", choices=["residual", "direct"])
     p.add_argument("--aux", dest="aux_inputs", action="store_const", const=True, help="also feed albedo+normal")
+    p.add_argument("--aux-mode", choices=AUX_MODES,
+                   help="with --aux, multi-scale archs: where albedo and normal enter: stem (default: the stem and "
+                        "the input skip), noskip (the stem only), levels (every encoder level's input, not the "
+                        "stem), kernel (only the predicted filter's weights; needs --kernel)")
+    p.add_argument("--aux-normals", choices=AUX_NORMALS,
+                   help="with --aux: normals as rendered (world, default) or in the camera's frame (camera; read "
+                        "from each scene's file)")
+    p.add_argument("--aux-prefilter", choices=AUX_PREFILTERS,
+                   help="with --aux, multi-scale archs: filter albedo and normal first (bilateral: a 5x5 joint "
+                        "bilateral filter inside the network; default none)")
     p.add_argument("--batch", type=int, help=f"patches per step (default {d.batch})")
     p.add_argument("--patch", type=int, help=f"patch side in pixels (default {d.patch.size})")
     p.add_argument("--detail-crops", type=float, metavar="D",

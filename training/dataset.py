@@ -9,7 +9,10 @@ Layout (written by ``dataset_gen``)::
 
 Image paths are always ``DIR/images/image_name(index, spp, kind)``; the manifest never supplies a
 path. Radiance is sanitised on load (NaN -> 0, clamped to [0, HDR_MAX]); aux images are the RGB
-channels of the ``.alb.exr`` (albedo, [0,1]) and ``.nrm.exr`` (normal, [-1,1]) files.
+channels of the ``.alb.exr`` (albedo, [0,1]) and ``.nrm.exr`` (normal, [-1,1]) files, the normals
+world-space as rendered or (``normals="camera"``) turned into the sensor's frame of the scene's
+file (:mod:`rendering.camera`): ``DIR/scenes/sceneNNNN/scene.xml``, or the manifest's
+``scene_file`` for a dataset rendered from the user's files.
 """
 from __future__ import annotations
 
@@ -22,11 +25,14 @@ from typing import Any
 import numpy as np
 import torch
 
-from imaging.errors import DatasetError, ExrError
+from dataset_gen.jobs import scene_file
+from imaging.errors import DatasetError, ExrError, SceneError
 from imaging.exr import read_exr
 from imaging.json_read import parse_json
 from imaging.naming import image_name
+from model.config import AUX_NORMALS
 from model.noise_input import noise_channels
+from rendering.camera import rotate_normals, scene_file_rotation
 from training.patches import TrainingPair
 from model.transfer import HDR_MAX, TransferFunction
 
@@ -46,6 +52,7 @@ class SceneRecord:
     aovs: tuple[str, ...]
     variance_spp: tuple[int, ...] = ()
     ref_ceiling_db: float | None = None
+    scene_file: str | None = None  # the user's scene file it was rendered from (None: a generated scene)
 
 
 @dataclass(frozen=True)
@@ -91,7 +98,8 @@ def _record(line: str, path: Path, number: int) -> SceneRecord:
         record = SceneRecord(int(obj["index"]), str(obj["split"]),
                              tuple(int(s) for s in obj["spp"]), tuple(str(a) for a in obj.get("aovs", [])),
                              tuple(int(s) for s in obj.get("variance_spp", [])),
-                             None if ceiling is None else float(ceiling))
+                             None if ceiling is None else float(ceiling),
+                             None if obj.get("scene_file") is None else str(obj["scene_file"]))
     except (json.JSONDecodeError, KeyError, TypeError, ValueError, OverflowError) as exc:  # int(Infinity)
         raise DatasetError(f"{path}:{number}: malformed manifest line ({exc})") from None
     if record.index < 0 or record.split not in ("train", "val"):
@@ -127,13 +135,34 @@ def _read_rgb(root: Path, index: int, spp: int | None, kind: str) -> np.ndarray:
     return rgb.astype(np.float32)
 
 
-def _aux(root: Path, record: SceneRecord, spp: int) -> np.ndarray:
+def scene_rotation(root: Path, record: SceneRecord) -> np.ndarray:
+    """:func:`rendering.camera.scene_file_rotation` of the scene file ``record`` was rendered from;
+    raises :class:`DatasetError` when it is missing or does not load."""
+    path = Path(record.scene_file) if record.scene_file else scene_file(root, record.index)
+    if not path.is_file():
+        raise DatasetError(f"scene {record.index}: normals in camera space need the scene's file, {path}: not found")
+    try:
+        return scene_file_rotation(path)
+    except SceneError as exc:
+        raise DatasetError(f"scene {record.index}: cannot read its camera ({exc})") from None
+
+
+def _aux(root: Path, record: SceneRecord, spp: int, rotation: np.ndarray | None = None) -> np.ndarray:
+    """HxWx6 albedo and normals of ``record`` at ``spp``, the normals times ``rotation`` if given."""
     missing = {"alb", "nrm"} - set(record.aovs)
     if missing:
         raise DatasetError(f"scene {record.index}: the model needs aux inputs but the dataset has no "
                            f"{'/'.join(sorted(missing))} buffers")
-    return np.concatenate([_read_rgb(root, record.index, spp, "alb"),
-                           _read_rgb(root, record.index, spp, "nrm")], axis=-1)
+    normals = _read_rgb(root, record.index, spp, "nrm")
+    if rotation is not None:
+        normals = rotate_normals(normals, rotation)
+    return np.concatenate([_read_rgb(root, record.index, spp, "alb"), normals], axis=-1)
+
+
+def _rotation(root: Path, record: SceneRecord, aux: bool, normals: str) -> np.ndarray | None:
+    if normals not in AUX_NORMALS:
+        raise ValueError(f"normals must be one of {AUX_NORMALS}, got {normals!r}")
+    return scene_rotation(root, record) if aux and normals == "camera" else None
 
 
 def _encode(transfer: TransferFunction, rgb: np.ndarray) -> np.ndarray:
@@ -147,7 +176,7 @@ def _variance(root: Path, record: SceneRecord, spp: int) -> np.ndarray | None:
 def load_training_pairs(root: Path, records: Iterable[SceneRecord], transfer: TransferFunction,
                         aux: bool, progress: Callable[[int], Any] | None = None,
                         converged: bool = False, noise: bool = False,
-                        index_offset: int = 0, noise_radius: int = 0) -> list[TrainingPair]:
+                        index_offset: int = 0, noise_radius: int = 0, normals: str = "world") -> list[TrainingPair]:
     """Every (scene, spp) of ``records`` as a transfer-space :class:`TrainingPair` held in RAM.
 
     With ``converged`` each scene also gets a pair whose input is its reference itself (``spp``
@@ -157,9 +186,11 @@ def load_training_pairs(root: Path, records: Iterable[SceneRecord], transfer: Tr
     :func:`model.noise_input.noise_channels` last (unknown where a level has no variance image;
     the variance averaged over ``noise_radius``).
     A pair's ``scene`` is the record's index + ``index_offset`` (distinct ids across datasets).
+    ``normals``: ``world`` or ``camera`` (see the module docstring).
     """
     pairs = []
     for record in records:
+        rotation = _rotation(root, record, aux, normals)
         ref_linear = _read_rgb(root, record.index, None, "hdr")
         ref = _encode(transfer, ref_linear)
         for spp in record.spp:
@@ -170,7 +201,7 @@ def load_training_pairs(root: Path, records: Iterable[SceneRecord], transfer: Tr
                                    f"reference {ref.shape}")
             parts = [noisy]
             if aux:
-                parts.append(_aux(root, record, spp))
+                parts.append(_aux(root, record, spp, rotation))
             if noise:
                 parts.append(noise_channels(linear, _variance(root, record, spp), transfer, noise_radius))
             pairs.append(TrainingPair(np.ascontiguousarray(np.concatenate(parts, axis=-1)), ref,
@@ -178,7 +209,7 @@ def load_training_pairs(root: Path, records: Iterable[SceneRecord], transfer: Tr
         if converged and record.spp:
             parts = [ref]
             if aux:
-                parts.append(_aux(root, record, max(record.spp)))
+                parts.append(_aux(root, record, max(record.spp), rotation))
             if noise:
                 parts.append(noise_channels(ref_linear, np.zeros_like(ref_linear), transfer, noise_radius))
             pairs.append(TrainingPair(np.ascontiguousarray(np.concatenate(parts, axis=-1)), ref,
@@ -189,15 +220,16 @@ def load_training_pairs(root: Path, records: Iterable[SceneRecord], transfer: Tr
 
 
 def load_val_images(root: Path, records: Iterable[SceneRecord], aux: bool,
-                    noise: bool = False, index_offset: int = 0) -> list[ValImage]:
+                    noise: bool = False, index_offset: int = 0, normals: str = "world") -> list[ValImage]:
     """Every (scene, spp) of ``records`` as linear-radiance :class:`ValImage` held in RAM (with
     its variance image where the dataset has one and ``noise`` asks for it); ``scene`` is the
-    record's index + ``index_offset``."""
+    record's index + ``index_offset``; ``normals`` as :func:`load_training_pairs`'s."""
     images = []
     for record in records:
+        rotation = _rotation(root, record, aux, normals)
         ref = _read_rgb(root, record.index, None, "hdr")
         for spp in record.spp:
             images.append(ValImage(record.index + index_offset, spp, _read_rgb(root, record.index, spp, "hdr"), ref,
-                                   _aux(root, record, spp) if aux else None,
+                                   _aux(root, record, spp, rotation) if aux else None,
                                    _variance(root, record, spp) if noise else None))
     return images

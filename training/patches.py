@@ -12,8 +12,10 @@ KPCN): among ``DETAIL_CANDIDATES`` times as many accepted candidates as the batc
 drawn with probability ``(1 - d) / n + d * s / sum(s)``, ``s`` its reference's standard deviation
 (transfer space, over pixels and channels), without replacement; d = 0 is the paper's uniform
 sampling (the same random stream as before the option existed). Augmentation applies the same random flip/transpose and
-the same RGB channel permutation to input and target (albedo is permuted with the RGB; normals are
-only moved spatially, their XYZ values are left as they are).
+the same RGB channel permutation to input and target (albedo is permuted with the RGB; world-space
+normals are only moved spatially, their XYZ values are left as they are; normals in the camera's
+frame turn with the image, as the normals of the mirrored scene would: a horizontal flip negates
+their X, a vertical flip their Y, a transpose swaps X and Y, :mod:`rendering.camera`).
 """
 from __future__ import annotations
 
@@ -70,28 +72,38 @@ def unique_counts(patches: np.ndarray) -> np.ndarray:
 
 
 def augment(noisy: np.ndarray, ref: np.ndarray, rng: np.random.Generator,
-            color_groups: Sequence[int] | None = None) -> tuple[np.ndarray, np.ndarray]:
+            color_groups: Sequence[int] | None = None,
+            camera_normals: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Apply one random dihedral transform + RGB permutation identically to a PxPxC / PxPx3 pair.
 
     ``color_groups``: first channels of the input's colour triplets that the permutation
     applies to (default: RGB, and albedo at 3..5 when there are >= 6 channels).
+    ``camera_normals``: first channel of the input's normals when they are in the camera's frame
+    (they turn with the image, module docstring); None: left as they are.
     """
     c = noisy.shape[-1]
     if color_groups is None:
         color_groups = (0, 3) if c >= 6 else (0,)
     both = np.concatenate([noisy, ref], axis=-1)
+    sign, swap = np.ones(3, np.float32), False
     if rng.random() < 0.5:
         both = both[:, ::-1]
+        sign[0] = -1.0  # image left <-> right: the camera's X
     if rng.random() < 0.5:
         both = both[::-1]
+        sign[1] = -1.0  # up <-> down: its Y
     if rng.random() < 0.5:
         both = both.transpose(1, 0, 2)
+        swap = True  # left <-> up: X <-> Y
     perm = _RGB_PERMUTATIONS[rng.integers(len(_RGB_PERMUTATIONS))]
     channels = np.arange(c + 3)
     for start in color_groups:
         channels[start:start + 3] = start + perm
     channels[c:] = c + perm
     both = both[:, :, channels]
+    if camera_normals is not None:
+        normals = both[:, :, camera_normals:camera_normals + 3] * sign
+        both[:, :, camera_normals:camera_normals + 3] = normals[:, :, [1, 0, 2]] if swap else normals
     return both[:, :, :c], both[:, :, c:]
 
 
@@ -127,9 +139,10 @@ def detail_choice(refs: np.ndarray, count: int, detail: float, rng: np.random.Ge
 
 def sample_batch(pairs: Sequence[TrainingPair], batch: int, config: PatchConfig,
                  rng: np.random.Generator,
-                 color_groups: Sequence[int] | None = None) -> tuple[np.ndarray, np.ndarray]:
+                 color_groups: Sequence[int] | None = None,
+                 camera_normals: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """``batch`` accepted, augmented crops -> (NxPxPxC noisy, NxPxPx3 ref) float32 arrays.
-    ``color_groups``: see :func:`augment`.
+    ``color_groups``, ``camera_normals``: see :func:`augment`.
 
     Pairs are drawn uniformly (so every spp level of every scene is equally likely), crop
     positions uniformly. Raises :class:`DatasetError` if too few crops pass the flat-patch filter.
@@ -158,7 +171,7 @@ def sample_batch(pairs: Sequence[TrainingPair], batch: int, config: PatchConfig,
         chosen = detail_choice(np.stack(kept_ref), batch, config.detail, rng)
         kept_noisy, kept_ref = [kept_noisy[i] for i in chosen], [kept_ref[i] for i in chosen]
     if config.augment:
-        pairs_out = [augment(n, r, rng, color_groups) for n, r in zip(kept_noisy, kept_ref)]
+        pairs_out = [augment(n, r, rng, color_groups, camera_normals) for n, r in zip(kept_noisy, kept_ref)]
         kept_noisy, kept_ref = [p[0] for p in pairs_out], [p[1] for p in pairs_out]
     return (np.ascontiguousarray(np.stack(kept_noisy), dtype=np.float32),
             np.ascontiguousarray(np.stack(kept_ref), dtype=np.float32))

@@ -4,6 +4,8 @@ References are smooth procedural HDR images (gradients, discs, a bright emitter 
 0..~50); a noisy image at ``s`` spp is the reference times ``1 + N(0, 1) / sqrt(s)`` (clamped >= 0)
 plus rare fireflies, so noise falls with spp like a Monte Carlo render. Albedo is the pattern's
 colour in [0, 1], the normal a fixed tilted XYZ field in [-1, 1]. Deterministic in ``seed``.
+With ``cameras`` each scene also gets a Mitsuba scene file where ``generate-dataset`` keeps a
+generated scene's (a sphere seen from :func:`camera_origin`), so that its camera's frame is known.
 """
 from __future__ import annotations
 
@@ -13,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from dataset_gen.jobs import scene_file
 from imaging.exr import write_exr
 from imaging.naming import image_name, scene_name
 
@@ -32,6 +35,19 @@ def _reference(rng: np.random.Generator, width: int, height: int) -> tuple[np.nd
     return radiance.astype(np.float32), albedo.astype(np.float32)
 
 
+def camera_origin(index: int) -> tuple[float, float, float]:
+    """Where the sensor of synthetic scene ``index``'s file stands (it looks at the origin, up +y)."""
+    return (3.0 + index, 1.0, 4.0 - 2.0 * index)
+
+
+def _scene_xml(index: int) -> str:
+    origin = ",".join(f"{v:g}" for v in camera_origin(index))
+    return ('<scene version="3.0.0">\n    <integrator type="path"/>\n    <sensor type="perspective">\n'
+            f'        <transform name="to_world"><lookat origin="{origin}" target="0,0,0" up="0,1,0"/></transform>\n'
+            '    </sensor>\n'
+            '    <shape type="sphere"/>\n    <emitter type="constant"/>\n</scene>\n')
+
+
 def _noisy(rng: np.random.Generator, ref: np.ndarray, spp: int) -> np.ndarray:
     noisy = ref * (1.0 + rng.standard_normal(ref.shape).astype(np.float32) / np.sqrt(spp))
     fireflies = rng.random(ref.shape[:2]) < 0.01 / spp
@@ -41,11 +57,12 @@ def _noisy(rng: np.random.Generator, ref: np.ndarray, spp: int) -> np.ndarray:
 
 def write_synthetic_dataset(root: str | Path, scenes: int = 2, res: tuple[int, int] = (32, 32),
                             spp: Sequence[int] = (4, 16), val_scenes: Sequence[int] = (1,),
-                            aovs: bool = False, seed: int = 0, variance: bool = False) -> Path:
+                            aovs: bool = False, seed: int = 0, variance: bool = False,
+                            cameras: bool = False) -> Path:
     """Write ``scenes`` scenes (indices 0..scenes-1; those in ``val_scenes`` in split "val") of
     ``res`` = (W, H) pixels at each of ``spp`` plus a reference to ``root``; returns ``root``.
     ``variance``: also a variance image per noisy image (``ref^2 / spp``, the noise's variance),
-    as ``generate-dataset --variance`` writes."""
+    as ``generate-dataset --variance`` writes; ``cameras``: a scene file per scene (module docstring)."""
     root = Path(root)
     (root / "images").mkdir(parents=True, exist_ok=True)
     aov_names = ["alb", "nrm"] if aovs else []
@@ -65,6 +82,10 @@ def write_synthetic_dataset(root: str | Path, scenes: int = 2, res: tuple[int, i
             if aovs:
                 write_exr(root / "images" / image_name(index, s, "alb"), albedo)
                 write_exr(root / "images" / image_name(index, s, "nrm"), normal)
+        if cameras:
+            path = scene_file(root, index)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            path.write_text(_scene_xml(index), encoding="utf-8")
         split = "val" if index in val_scenes else "train"
         lines.append(json.dumps({"index": index, "scene": scene_name(index), "family": "synthetic",
                                  "seed": seed, "split": split, "spp": list(spp), "aovs": aov_names,

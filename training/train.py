@@ -238,9 +238,10 @@ class _Run:
         for k, (root, train, val) in enumerate(chosen):
             pairs += load_training_pairs(root, train, get_transfer(model.transfer), model.aux_inputs,
                                          converged=config.converged_pairs, noise=model.noise_input,
-                                         index_offset=k * DATASET_ID_STRIDE, noise_radius=model.noise_radius)
+                                         index_offset=k * DATASET_ID_STRIDE, noise_radius=model.noise_radius,
+                                         normals=model.aux_normals)
             val_images += load_val_images(root, val, model.aux_inputs, model.noise_input,
-                                          index_offset=k * DATASET_ID_STRIDE)
+                                          index_offset=k * DATASET_ID_STRIDE, normals=model.aux_normals)
         return data_config, pairs, val_images
 
     def _open(self, resume: bool) -> Checkpoint | None:
