@@ -8,6 +8,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from console.clock import process_started
 from console.progress import tqdm_bars
 from rendering.render import DEFAULT_MAX_MEMORY_MB
 from console.usage import OneLineParser, int_list, name_list, name_value, positive_float, positive_int
@@ -129,7 +130,9 @@ def render_parser() -> OneLineParser:
     p.add_argument("--out", help="output folder (default: the scene's name): created, or an existing folder "
                    "holding none of this command's files (else --overwrite)")
     p.add_argument("--time-budget", type=positive_float, metavar="SECONDS",
-                   help="choose spp (and, with --model auto, the model) to finish within SECONDS")
+                   help="choose spp (and, with --model auto, the model) so that the denoised image exists "
+                   "within SECONDS of wall time from the command's start, on the host as it runs now: its "
+                   "speed is measured first; writing the outputs comes after")
     p.add_argument("--curves", metavar="TRADEOFF_JSON",
                    help="trade curves (a tradeoff run's tradeoff.json) for --model auto")
     p.add_argument("--json", action="store_true", help="print the run's record (metrics.json) instead of the "
@@ -154,7 +157,8 @@ def main(argv: list[str] | None = None) -> int:
                     time_budget=args.time_budget, curves=args.curves)
     quiet = args.quiet or args.json
     log = (lambda s: None) if quiet else (lambda s: print(f"... {s}", file=sys.stderr))
-    metrics, code = parser.attempt(lambda: run(cfg, log, None if quiet else tqdm_bars("sample", scale=True)))
+    started = process_started() if argv is None else None  # the command's own start: the budget counts from it
+    metrics, code = parser.attempt(lambda: run(cfg, log, started, None if quiet else tqdm_bars("sample", scale=True)))
     if code == 0:
         print_record(parser, metrics, args, lambda m: [
             *summary_lines(m), f"report: {Path(cfg.out) / 'report.html'} (metrics.json, comparison.png beside it)"])

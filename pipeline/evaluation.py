@@ -95,8 +95,9 @@ def make_denoiser(model: str | Path | Sequence[str | Path] | None, settings: Ren
                     skip_below=settings.skip_below if settings.noise_guard else None, device=settings.device)
 
 
-def aovs_for(denoisers: Iterable[Denoiser]) -> tuple[str, ...]:
-    """The AOVs to render for these models: :data:`AOVS` if any of them needs them, else none."""
+def aovs_for(denoisers: Iterable[Any]) -> tuple[str, ...]:
+    """The AOVs to render for these models (loaded, or a time budget's recorded costs: each with
+    ``needs_aovs``): :data:`AOVS` if any of them needs them, else none."""
     return AOVS if any(d.needs_aovs for d in denoisers) else ()
 
 

@@ -28,7 +28,8 @@ from imaging.output_paths import check_output_folder
 from imaging.peak_rss import PeakRSS
 from console.progress import ProgressFactory, counted
 from rendering.render import RenderResult
-from pipeline.budget import BudgetPlan, budget_candidates, plan_run
+from pipeline.budget import BudgetPlan, Candidate, after_render, budget_candidates, plan_run, refit_spp
+from pipeline.budget_costs import read_costs
 from denoise.denoiser import DenoiseResult, Denoiser
 from pipeline.evaluation import (RenderSettings, aovs_for, check_memory, check_reference, denoise_output,
                                  make_denoiser, quality_lines, read_reference, render_input, render_reference,
@@ -114,8 +115,8 @@ class _Run:
     cfg: RunConfig
     log: Callable[[str], None]
     started: float
-    denoiser: Denoiser
-    candidates: dict[str, Denoiser]
+    denoiser: Denoiser | None  # under a time budget: None until the plan chooses
+    candidates: dict[str, Candidate]
     reference: np.ndarray | None
     aovs: tuple[str, ...] = ()
     scene: Any = None
@@ -128,21 +129,25 @@ class _Run:
     timings: dict[str, float] = field(default_factory=dict)
     oidn: dict[str, Any] = field(default_factory=dict)
     bars: ProgressFactory | None = None  # the renders' progress bars (None: none drawn)
+    recorded: tuple[float, float] | None = None  # the recorded model costs' calibration times (budget mode)
 
 
-def _start(cfg: RunConfig, log: Callable[[str], None]) -> _Run:
-    """Check the settings, load the models, read the reference file and prepare the output folder
-    (everything that can fail before the scene loads)."""
+def _start(cfg: RunConfig, log: Callable[[str], None], started: float | None) -> _Run:
+    """Check the settings, load the model (under a time budget: those whose costs are not
+    recorded), read the reference file and prepare the output folder (everything that can fail
+    before the scene loads, but for loading the model a budget chooses)."""
     cfg.render.check()
     cfg.render.check_outputs(cfg.out, OUTPUT_NAMES)
     check_output_folder(cfg.out, RESULT_NAMES, cfg.render.overwrite)
-    started = time.perf_counter()
-    candidates = budget_candidates(cfg.model, cfg.render) if cfg.time_budget is not None else {}
-    denoiser = next(iter(candidates.values())) if candidates else make_denoiser(cfg.model, cfg.render)
+    started = time.perf_counter() if started is None else started
+    costs = read_costs() if cfg.time_budget is not None else None
+    candidates = budget_candidates(cfg.model, cfg.render, costs) if cfg.time_budget is not None else {}
+    denoiser = None if candidates else make_denoiser(cfg.model, cfg.render)
     reference = read_reference(cfg.render)
     _check_out(Path(cfg.out))
-    aovs = aovs_for([denoiser, *candidates.values()])
-    return _Run(cfg, log, started, denoiser, candidates, reference, aovs, spp=cfg.spp)
+    aovs = aovs_for([denoiser] if denoiser else candidates.values())
+    return _Run(cfg, log, started, denoiser, candidates, reference, aovs, spp=cfg.spp,
+                recorded=(costs.calibration_s, costs.loading_s) if costs else None)
 
 
 def _load_scene(run: _Run) -> None:
@@ -154,14 +159,32 @@ def _load_scene(run: _Run) -> None:
     run.timings["scene_load_s"] = time.perf_counter() - t0
 
 
+def _use(run: _Run, name: str) -> None:
+    """Denoise with candidate ``name``, loading it if it is not loaded yet (the time it takes goes
+    into the timings' ``model_load_s``)."""
+    candidate = run.candidates[name]
+    if not isinstance(candidate, Denoiser):
+        run.log(f"loading {name}")
+        t0 = time.perf_counter()
+        candidate = run.candidates[name] = make_denoiser(name, run.cfg.render)
+        run.timings["model_load_s"] = run.timings.get("model_load_s", 0.0) + time.perf_counter() - t0
+    run.denoiser = candidate
+
+
 def _fit_budget(run: _Run) -> None:
-    """Budget mode: probe the scene and the candidate models, choose the model and the spp."""
+    """Budget mode: calibrate, probe the scene (and the models loaded for it), choose the model and
+    the spp; load the chosen model and fit the spp to the time then left."""
     if not run.candidates:
         return
     cfg = run.cfg
     run.plan = plan_run(cfg.time_budget, run.started, run.scene, cfg.render.seed, run.aovs, run.candidates,
-                        cfg.curves, run.log, halves=cfg.render.noise_guard)
-    run.denoiser, run.spp = run.candidates[run.plan.model], run.plan.spp
+                        cfg.curves, run.log, halves=cfg.render.noise_guard, max_memory_mb=cfg.render.max_memory_mb,
+                        recorded=run.recorded)
+    loaded = isinstance(run.candidates[run.plan.model], Denoiser)
+    _use(run, run.plan.model)
+    if not loaded:
+        refit_spp(run.plan, time.perf_counter() - run.started)
+    run.spp = run.plan.spp
 
 
 def _render_and_denoise(run: _Run) -> None:
@@ -172,6 +195,10 @@ def _render_and_denoise(run: _Run) -> None:
         run.noisy = render_input(run.scene, run.spp, run.cfg.render, run.aovs, counted(run.bars, "render"))
     if run.reference is not None:
         check_reference(run.cfg.render, run.reference, run.noisy)
+    if run.plan:
+        switch = after_render(run.plan, time.perf_counter() - run.started, run.noisy.seconds)
+        if switch:
+            _use(run, switch)
     chosen = f" -> {run.denoiser.choice(run.spp).name}" if run.denoiser.name == AUTO else ""
     run.log(f"denoising with {run.denoiser.name}{chosen}")
     denoised = denoise_output(run.noisy, run.denoiser)
@@ -246,12 +273,13 @@ def _metrics(run: _Run) -> dict[str, Any]:
     return json_safe(metrics)
 
 
-def run(cfg: RunConfig, log: Callable[[str], None] = lambda s: None,
+def run(cfg: RunConfig, log: Callable[[str], None] = lambda s: None, started: float | None = None,
         bars: ProgressFactory | None = None) -> dict[str, Any]:
     """Render, denoise, compare; write every output; return the metrics dict. metrics.json is
-    written last: a folder without it holds no finished run. ``bars``: a progress bar per render
-    (samples rendered)."""
-    state = _start(cfg, log)
+    written last: a folder without it holds no finished run. ``started``: the
+    ``time.perf_counter()`` at which the command started, where the time budget and ``total_s``
+    count from (None: now). ``bars``: a progress bar per render (samples rendered)."""
+    state = _start(cfg, log, started)
     state.bars = bars
     _load_scene(state)
     # written once the scene and its memory passed: a refused start leaves no file that would
@@ -275,6 +303,24 @@ def model_words(model: dict[str, Any]) -> str:
     return f"{model['name']}{chose}, ran {' + '.join(model['models_run'])}"
 
 
+def budget_lines(budget: dict[str, Any]) -> list[str]:
+    """What a time budget assumed and what it came to: the choice, the host's measured speed, the
+    prediction against the wall time, and the notes of the checks against the clock."""
+    speed = budget["speed"]
+    host = (f"host at {1 / speed['slowdown']:.2f}x (networks) and {1 / speed['loading_slowdown']:.2f}x (loading) "
+            f"the speed the model costs were recorded at (calibrations {speed['calibration_s'] * 1e3:.1f} and "
+            f"{speed['loading_s'] * 1e3:.1f} ms a call, recorded {speed['recorded_s'] * 1e3:.1f} and "
+            f"{speed['recorded_loading_s'] * 1e3:.1f})" if speed.get("slowdown") and speed.get("loading_slowdown") else
+            f"calibrations {speed['calibration_s'] * 1e3:.1f} and {speed['loading_s'] * 1e3:.1f} ms a call "
+            "(no model costs recorded to compare)")
+    ratio = budget["actual_s"] / budget["budget_s"]
+    return [f"time budget {budget['budget_s']:g} s: chose {budget['model']} at {budget['spp']} spp ({budget['rule']})",
+            f"  assumed: {host}; model costs {budget['costs']}",
+            f"  predicted {budget['predicted_s']:.2f} s; the denoised image took {budget['actual_s']:.2f} s of wall "
+            f"time ({ratio:.2f}x the budget)",
+            *(f"  note: {note}" for note in budget["notes"])]
+
+
 def summary_lines(metrics: dict[str, Any]) -> list[str]:
     """A one-screen summary of a run's metrics."""
     t = metrics["timings"]
@@ -290,9 +336,7 @@ def summary_lines(metrics: dict[str, Any]) -> list[str]:
         lines.append(f"energy correction: mean factor {energy['mean_factor']:.3f} (1: unchanged)")
     budget = metrics.get("budget")
     if budget:
-        lines.append(f"time budget {budget['budget_s']:g} s: chose {budget['model']} at {budget['spp']} spp "
-                     f"({budget['rule']}); predicted {budget['predicted_s']:.2f} s, actual "
-                     f"{budget['actual_s']:.2f} s")
+        lines += budget_lines(budget)
     if metrics.get("quality"):
         lines += quality_lines(metrics["quality"])
     else:

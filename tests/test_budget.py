@@ -1,7 +1,9 @@
-"""The time-budget planner on fake cost models, its probes on fakes, and the CLI end to end."""
+"""The time-budget planner on fake cost models (and on a host made slower), its probes and its
+checks against the clock on fakes, and the CLI end to end."""
 from __future__ import annotations
 
 import json
+import time
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
@@ -13,8 +15,10 @@ from denoise.tiling import plan_tiles
 from model.registry import registry
 from pipeline import budget
 from pipeline.evaluation import RenderSettings
-from pipeline.budget import (BudgetError, RenderCost, budget_candidates, denoise_seconds, fit_spp,
-                             load_curves, plan_budget, probe_render, window_pixels)
+from pipeline.budget import (BudgetError, BudgetPlan, RenderCost, after_render, budget_candidates,
+                             denoise_seconds, fit_spp, load_curves, plan_budget, plan_run, probe_render,
+                             refit_spp, window_pixels)
+from pipeline.budget_costs import COSTS, EntryCost, read_costs
 from pipeline.cli import main
 from tests.test_denoiser import write_tiny_checkpoint
 
@@ -65,8 +69,92 @@ def test_auto_with_curves_picks_the_lowest_predicted_error() -> None:
 
 
 def test_budget_too_small_is_a_clear_error() -> None:
-    with pytest.raises(BudgetError, match=r"time budget 1 s is too small: 0.80 s went to loading"):
+    with pytest.raises(BudgetError, match=r"time budget 1 s is too small: 0.80 s went to starting"):
         plan_budget(1.0, 0.8, RENDER, PRESETS)
+
+
+def test_loading_a_model_counts_against_the_budget(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(budget, "quality_order", lambda: ("high", "balanced", "fast"))
+    plan = plan_budget(20.0, 0.0, RENDER, PRESETS, load_s={"high": 4.0, "balanced": 1.0, "fast": 0.5})
+    assert plan.model == "balanced"  # high's 4 + 4 s is over a third of 20 s, balanced's 3 s is not
+    assert plan.predicted_load_s == 1.0 and plan.spp == fit_spp(20.0, RENDER, 3.0)
+    assert plan.predicted_s == pytest.approx(1.0 + 0.5 + 0.01 * plan.spp + 2.0)
+
+
+SLOW_SCENE = SimpleNamespace(sensors=lambda: [SimpleNamespace(film=lambda: SimpleNamespace(crop_size=lambda: (64, 64)))])
+RECORDED = {"high": EntryCost(1.0, 0.0, 0.0, 4.0 / 64**2, 1e3, 8, 8, 1, False, ()),  # 1 s to load, 4 s a 64x64
+            "fast": EntryCost(0.2, 0.0, 0.0, 0.5 / 64**2, 1e3, 8, 8, 1, False, ())}
+
+
+def slow_host_plan(monkeypatch: pytest.MonkeyPatch, slowdown: float, budget_s: float = 40.0) -> BudgetPlan:
+    """plan_run on a host whose calibrations take ``slowdown`` times the recorded 1 ms; the render
+    probe measures 0.05 s a sample under the same load."""
+    monkeypatch.setattr(budget, "quality_order", lambda: ("high", "fast"))
+    monkeypatch.setattr(budget, "calibrate", lambda workload: 0.001 * slowdown)  # both calibrations
+    monkeypatch.setattr(budget, "probe_render", lambda *a, **k: RenderCost(0.0, 0.05 * slowdown))
+    return plan_run(budget_s, time.perf_counter(), SLOW_SCENE, 0, (), RECORDED, None, recorded=(0.001, 0.001))
+
+
+def test_a_slower_host_gets_a_plan_that_fits_it(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The recorded costs are scaled by the calibrations' slowdowns: a host at a quarter of the
+    recorded speed (busy) gets fewer samples and the cheaper model, predicted within the budget."""
+    idle = slow_host_plan(monkeypatch, 1.0)
+    busy = slow_host_plan(monkeypatch, 4.0)
+    assert idle.model == "high" and busy.model == "fast"
+    assert busy.spp < idle.spp
+    assert busy.speed["slowdown"] == busy.speed["loading_slowdown"] == pytest.approx(4.0)
+    assert busy.speed["calibration_s"] == busy.speed["loading_s"] == 0.004 and busy.speed["recorded_s"] == 0.001
+    assert busy.predicted_load_s == pytest.approx(4 * 0.2) and busy.predicted_denoise_s == pytest.approx(4 * 0.5)
+    assert busy.predicted_s <= 40.0 < busy.predicted_s + busy.render_cost["per_spp_s"]
+    assert busy.costs == "recorded x the measured slowdowns" and {o["costs"] for o in busy.options} == {"recorded"}
+    with pytest.raises(BudgetError, match=r"the host runs the networks at 0.05x and loads them at 0.05x the speed"):
+        slow_host_plan(monkeypatch, 20.0, budget_s=10.0)
+
+
+def test_a_budget_the_model_alone_overruns_fails_before_the_render_probe(monkeypatch: pytest.MonkeyPatch) -> None:
+    # at 4x slower fast needs 0.8 s to load and 2 s to denoise: 2.5 s cannot hold it, whatever the render costs
+    def no_probe(*args: Any, **kwargs: Any) -> RenderCost:
+        raise AssertionError("the render was probed")
+
+    monkeypatch.setattr(budget, "probe_render", no_probe)
+    monkeypatch.setattr(budget, "calibrate", lambda workload: 0.004)
+    with pytest.raises(BudgetError, match=r"time budget 2.5 s is too small: .* need 2.80 s more .*0.25x"):
+        plan_run(2.5, time.perf_counter(), SLOW_SCENE, 0, (), RECORDED, None, recorded=(0.001, 0.001))
+
+
+def chosen(spp: int = 100, load_s: float = 1.0) -> BudgetPlan:
+    """A plan of ``high`` at ``spp`` (render 0.01 s a sample, 4 s to denoise) with ``fast`` beside it."""
+    options = [{"model": "high", "spp": spp, "denoise_s": 4.0, "load_s": load_s},
+               {"model": "fast", "spp": spp, "denoise_s": 0.5, "load_s": 0.2}]
+    return BudgetPlan(20.0, "high", spp, 5.0, 0.01 * spp, 4.0, "rule", options,
+                      {"fixed_s": 0.0, "per_spp_s": 0.01, "probe_s": 0.0}, predicted_load_s=load_s)
+
+
+def test_refit_spp_to_the_time_left_once_loaded() -> None:
+    plan = chosen()
+    refit_spp(plan, 10.0)  # 10 s left: 4 s denoising, 6 s of samples
+    assert plan.spp == 600 and plan.predicted_render_s == pytest.approx(6.0)
+    assert plan.notes == ["high loaded at 10.0 s (1.0 s predicted for it), 10.0 s left: 100 -> 600 spp"]
+    late = chosen()
+    refit_spp(late, 17.0)
+    assert late.spp == 1 and "not even 1 spp fits: the budget will be exceeded" in late.notes[0]
+    same = chosen(spp=600)
+    refit_spp(same, 10.0)
+    assert same.spp == 600 and not same.notes
+
+
+def test_after_render_gives_way_to_a_model_that_ends_sooner() -> None:
+    plan = chosen()
+    assert after_render(plan, 10.0, 1.0) is None and not plan.notes  # 4 s of 10 left
+    assert after_render(plan, 17.0, 1.0) == "fast"  # 3 s left: high needs 4, fast 0.2 + 0.5
+    assert plan.model == "fast" and "denoising with fast" in plan.notes[0]
+    slower = chosen()
+    assert after_render(slower, 13.0, 2.0) == "fast"  # the render took 2x its prediction: high needs 8 s of 7
+    assert "2.00x its prediction" in slower.notes[0]
+    hopeless = chosen()
+    hopeless.options[1].update(denoise_s=9.0)
+    assert after_render(hopeless, 19.0, 1.0) is None and hopeless.model == "high"
+    assert "no other model ends sooner: the budget will be exceeded" in hopeless.notes[0]
 
 
 def test_load_curves(tmp_path: Path) -> None:
@@ -126,12 +214,17 @@ def test_denoise_seconds_scales_by_tile_windows(member_ranges: list[tuple[int, i
 
 def test_auto_candidates_are_the_registry_entries_best_first() -> None:
     """``--model auto`` under a budget chooses among the registry's entries, best measured quality
-    first (entries without figures by the manifest's order, the quickest last); any other model alone."""
+    first (entries without figures by the manifest's order, the quickest last); any other model
+    alone. Without recorded costs each is loaded; with them none is."""
     order = budget.quality_order()
+    settings = RenderSettings(scene="unused.xml", max_memory_mb=64)
     assert set(order) == set(registry().entries) and order[-1] == "fast"
-    found = budget_candidates("auto", RenderSettings(scene="unused.xml", max_memory_mb=64))
+    found = budget_candidates("auto", settings)
     assert list(found) == list(order) and all(found[name].name == name for name in order)
-    assert list(budget_candidates("balanced", RenderSettings(scene="unused.xml", max_memory_mb=64))) == ["balanced"]
+    assert list(budget_candidates("balanced", settings)) == ["balanced"]
+    recorded = budget_candidates("auto", settings, read_costs(COSTS))
+    assert list(recorded) == list(order) and all(isinstance(c, EntryCost) for c in recorded.values())
+    assert isinstance(budget_candidates(None, settings, read_costs(COSTS))[registry().default], EntryCost)
 
 
 @pytest.mark.parametrize("args", [["--time-budget", "5", "--spp", "4"],
@@ -155,4 +248,39 @@ def test_cli_time_budget_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixtur
     assert plan["model"] == "tiny" and plan["spp"] == metrics["spp"] == 8
     assert 0 < plan["spent_s"] < plan["predicted_s"] <= 120.0
     assert plan["actual_s"] > 0 and plan["render_cost"]["per_spp_s"] > 0
-    assert "time budget 120 s: chose tiny at 8 spp" in capsys.readouterr().out
+    assert plan["speed"]["calibration_s"] > 0 and plan["costs"] == "timed now"
+    recorded, speed = read_costs(COSTS), plan["speed"]
+    assert (speed["recorded_s"], speed["recorded_loading_s"]) == (recorded.calibration_s, recorded.loading_s)
+    assert speed["slowdown"] == pytest.approx(speed["calibration_s"] / speed["recorded_s"])
+    assert speed["loading_slowdown"] == pytest.approx(speed["loading_s"] / speed["recorded_loading_s"])
+    out = capsys.readouterr().out
+    assert "time budget 120 s: chose tiny at 8 spp" in out
+    assert "the speed the model costs were recorded at (calibrations" in out and "of wall time (" in out
+
+
+def test_cli_time_budget_loads_only_the_chosen_model(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A candidate with recorded costs is loaded once chosen, its loading timed, and the spp
+    fitted to the time then left; a host 3x slower than recorded is in the record."""
+    ckpt = write_tiny_checkpoint(tmp_path / "tiny.ckpt")
+    loaded: list[str] = []
+
+    def make(name: str, settings: RenderSettings) -> Any:
+        loaded.append(name)
+        return real_make(str(ckpt), settings)
+
+    from pipeline import run as run_module
+    real_make = run_module.make_denoiser
+    cost = EntryCost(0.5, 0.0, 0.0, 1e-6, 1e3, 8, 8, 1, False, ())
+    monkeypatch.setattr(run_module, "make_denoiser", make)
+    monkeypatch.setattr(run_module, "budget_candidates", lambda *a: {"mine": cost})
+    monkeypatch.setattr(run_module, "read_costs", lambda: SimpleNamespace(calibration_s=0.001, loading_s=0.001))
+    monkeypatch.setattr(budget, "calibrate", lambda workload: 0.003)
+    monkeypatch.setattr(budget, "MAX_SPP", 8)
+    out = tmp_path / "run"
+    assert main([str(DEMO), "--res", "32", "32", "--model", "mine", "--time-budget", "120", "--out", str(out),
+                 "--quiet"]) == 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    plan = metrics["budget"]
+    assert loaded == ["mine"] and metrics["timings"]["model_load_s"] > 0
+    assert plan["speed"]["slowdown"] == pytest.approx(3.0) and plan["predicted_load_s"] == pytest.approx(1.5)
+    assert plan["costs"] == "recorded x the measured slowdowns" and plan["spp"] == metrics["spp"] == 8
