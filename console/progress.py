@@ -3,14 +3,19 @@ call on the bar it is given — the part of ``tqdm`` they use. Library code draw
 through such an object; the commands make them with :func:`tqdm_bars`."""
 from __future__ import annotations
 
+import sys
 from collections.abc import Callable
 from typing import Any, Protocol
 
 
 class ProgressBar(Protocol):
-    """A progress bar: ``tqdm`` or anything with these methods."""
+    """A progress bar: ``tqdm`` or anything with these methods. ``total`` is the count it runs to; a
+    loop may revise it (then calls :meth:`refresh`): training under a time limit does."""
+
+    total: Any
 
     def update(self, n: int = 1) -> Any: ...
+    def refresh(self) -> Any: ...
     def set_description(self, desc: str | None = None, refresh: bool = True) -> Any: ...
     def set_postfix_str(self, s: str = "", refresh: bool = True) -> Any: ...
     def write(self, s: str) -> Any: ...
@@ -28,8 +33,6 @@ def tqdm_bars(unit: str, enabled: bool = True, scale: bool = False) -> ProgressF
     (``--quiet``, ``--no-progress``, ``--json``) draws nothing; ``scale``: counts with SI prefixes
     (``12.3M/256M``)."""
     def bar(total: int, initial: int = 0) -> ProgressBar:
-        import sys
-
         from tqdm import tqdm
 
         return tqdm(total=total, initial=initial, unit=unit, unit_scale=scale, dynamic_ncols=True,
@@ -56,3 +59,15 @@ def counted(bars: ProgressFactory | None, description: str) -> Callable[[int, in
             state["bar"].close()
 
     return advance
+
+
+def console_lines(prefix: str) -> Callable[[str], None]:
+    """A writer of one line each on stdout, starting with ``prefix``, that does not tear a bar
+    being drawn on stderr (``tqdm.write`` clears the bar, writes, and draws it again)."""
+    def write(line: str) -> None:
+        from tqdm import tqdm
+
+        tqdm.write(f"{prefix}{line}", file=sys.stdout)
+        sys.stdout.flush()
+
+    return write

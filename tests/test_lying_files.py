@@ -125,7 +125,7 @@ def dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def test_train_init_from_a_lying_checkpoint(lies: Path, dataset: Path, tmp_path: Path,
                                             capfd: pytest.CaptureFixture) -> None:
     code = call(train_main, ["--data", str(dataset), "--out", str(tmp_path / "run"), "--preset", "flat-s", "--steps",
-                             "1", "--batch", "2", "--val-every", "0", "--no-progress", "--no-oidn",
+                             "1", "--batch", "2", "--patch", "28", "--val-every", "0", "--no-progress", "--no-oidn",
                              "--init-from", str(lies / "growth4096.ckpt")])
     one_line(capfd, code, "growth4096.ckpt: weights do not match the model config")
 

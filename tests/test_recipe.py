@@ -14,6 +14,7 @@ from model.config import DEFAULT_TRAIN_MODEL
 from training.cli import main
 from training.recipe import load_recipe, parse_recipe, recipe_names
 from training.recipe_run import RecipeRun, plan, run_recipe
+from training.synthetic import write_synthetic_dataset
 from training.train_config import TrainConfig
 
 TINY = """
@@ -169,10 +170,19 @@ def test_every_registry_checkpoint_has_its_recipe_and_a_fine_tune_starts_from_it
     for name, card in shipped.checkpoints.items():
         assert card.recipe == name and load_recipe(name).final.model == \
             load_model_config(shipped.path_of(name)), name
-    assert main(["--recipe", "unet-m-k5-lowspp", "--out", str(tmp_path / "r"), "--data", "mine", "--init-from",
-                 "unet-m-k5-lowspp", "--dry-run"]) == 0
-    assert f"--init-from {shipped.path_of('unet-m-k5-lowspp')}" in capsys.readouterr().out
-    assert main(["--recipe", "unet-m-k5-lowspp", "--out", str(tmp_path / "r"), "--data", "mine", "--init-from",
+    mine = write_synthetic_dataset(tmp_path / "mine", scenes=3, res=(64, 64), spp=(1, 2, 4), val_scenes=())
+    assert main(["--recipe", "unet-m-k5-lowspp", "--out", str(tmp_path / "r"), "--data", str(mine), "--init-from",
+                 "unet-m-k5-lowspp", "--minutes", "2", "--dry-run"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert f"--init-from {shipped.path_of('unet-m-k5-lowspp')}" in out[2]
+    # 64-px renders of a few scenes (issue 54): the crops fit the images, the training scenes validate
+    assert out[4:6] == [
+        "#   training crops of 64 px: the recipe's 128 px crops are larger than the data's 64x64 images",
+        "#   validating every 500 steps on the 3 training scenes (9 images): the data holds no scene out (split "
+        "'val'), so the score measures the fit to these scenes, not to others"]
+    assert out[1] == "# this command stops after 2 minutes (the same command continues the run)"
+    assert not (tmp_path / "r").exists()
+    assert main(["--recipe", "unet-m-k5-lowspp", "--out", str(tmp_path / "r"), "--data", str(mine), "--init-from",
                  "fast"]) == 1
     assert "--init-from fast: a registry entry (an ensemble), not one network" in capsys.readouterr().err
 
@@ -300,3 +310,96 @@ def test_tiny_recipe_end_to_end_with_a_kill_and_a_fine_tune(tmp_path: Path,
     assert main(["--recipe", "smoke", "--out", str(tmp_path / "t2"), "--data", str(data / "tiny16"),
                  "--init-from", str(result.model)]) == 1
     assert "not the network recipe smoke trains (flat-s)" in capsys.readouterr().err
+
+
+FINETUNE = """
+name = "tiny-unet"
+[datasets.unused]
+scenes = 20
+res = 256
+spp = [1]
+ref_spp = 16
+[[stages]]
+name = "main"
+data = ["unused"]
+preset = "unet-s"
+model = { levels = 1, layers = 1, growth = 4, init_features = 8 }
+patch = 32
+batch = 2
+steps = 100
+threads = 1
+oidn = false
+[finetune]
+steps = 2
+lr_warmup = 0
+val_every = 1
+ckpt_every = 1
+log_every = 1
+"""
+
+
+@pytest.fixture
+def tiny_unet(tmp_path: Path) -> tuple[Path, Path]:
+    """A recipe of a small U-Net (alignment 4, 32-px crops) and a checkpoint of its network."""
+    from model.architectures import build_model
+    from model.checkpoint import save_checkpoint
+
+    path = tmp_path / "tiny-unet.toml"
+    path.write_text(FINETUNE)
+    base = tmp_path / "base.ckpt"
+    save_checkpoint(base, build_model(parse_recipe(FINETUNE, path).final.model), step=0)
+    return path, base
+
+
+def test_a_fine_tune_on_a_few_small_renders_just_works(tiny_unet: tuple[Path, Path], tmp_path: Path,
+                                                       capsys: pytest.CaptureFixture) -> None:
+    """Three scenes smaller than the recipe's crops, none held out: --dry-run says what the start
+    will do (crops shrunk to fit, validation on the training scenes) and creates nothing; the run
+    does it, printing those lines and each validation's score, and the same command again is done."""
+    recipe, base = tiny_unet
+    data = write_synthetic_dataset(tmp_path / "mine", scenes=3, res=(30, 26), spp=(2, 8), val_scenes=())
+    out = tmp_path / "runs" / "mine"
+    argv = ["--recipe", str(recipe), "--data", str(data), "--init-from", str(base), "--out", str(out), "--no-progress"]
+    crops = "training crops of 24 px: the recipe's 32 px crops are larger than the data's 30x26 images"
+    validation = ("validating every 1 steps on the 3 training scenes (6 images): the data holds no scene out "
+                  "(split 'val'), so the score measures the fit to these scenes, not to others")
+    assert main([*argv, "--dry-run"]) == 0
+    planned = capsys.readouterr().out.splitlines()
+    assert "patch 24" in planned[2] and planned[3:5] == [f"#   {crops}", f"#   {validation}"]
+    assert not (tmp_path / "runs").exists()
+    assert main(argv) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].startswith("train: stage finetune: starting (2 steps, dense_unet, data mine)")
+    assert lines[1:3] == [f"train: {crops}", f"train: {validation}"]
+    assert [line.split(":")[1] for line in lines[3:5]] == [" step 1", " step 2"]
+    assert all(" dB on the training scenes (6 images; noisy " in line for line in lines[3:5])
+    assert lines[5] == f"recipe tiny-unet done: {out / 'tiny-unet-finetuned.ckpt'}"
+    config = read_checkpoint(out / "tiny-unet-finetuned.ckpt").header["train_config"]
+    assert config["patch"]["size"] == 24 and config["val_every"] == 1
+    assert main(argv) == 0 and "recipe tiny-unet done" in capsys.readouterr().out
+
+
+def test_a_fine_tune_that_cannot_start_leaves_nothing(tiny_unet: tuple[Path, Path], tmp_path: Path,
+                                                      capsys: pytest.CaptureFixture) -> None:
+    """Data that will fail (no dataset; images smaller than any crop the network takes) fails
+    --dry-run as it fails the run, before a run folder exists; a plain train run's folder is not
+    taken for a recipe's."""
+    recipe, base = tiny_unet
+    out = tmp_path / "runs" / "mine"
+    tiny = write_synthetic_dataset(tmp_path / "tiny", scenes=2, res=(3, 3), spp=(2,), val_scenes=())
+    for data, message in ((tmp_path / "nothing", "nothing/dataset.json: not found"),
+                          (tiny, "its 3x3 images are smaller than the 32px training crops; render the data at a "
+                                 "larger --res")):
+        for dry in ([], ["--dry-run"]):
+            assert main(["--recipe", str(recipe), "--data", str(data), "--init-from", str(base), "--out", str(out),
+                         "--no-progress", *dry]) == 1
+            err = capsys.readouterr().err.strip().splitlines()
+            assert len(err) == 1 and message in err[0], err
+            assert not (tmp_path / "runs").exists()
+    plain = tmp_path / "plain"
+    plain.mkdir()
+    (plain / "last.ckpt").write_bytes(base.read_bytes())
+    data = write_synthetic_dataset(tmp_path / "mine", scenes=2, res=(32, 32), spp=(2,), val_scenes=())
+    assert main(["--recipe", str(recipe), "--data", str(data), "--init-from", str(base), "--out", str(plain)]) == 1
+    assert "holds last.ckpt: not a recipe run" in capsys.readouterr().err
+    assert [p.name for p in plain.iterdir()] == ["last.ckpt"]

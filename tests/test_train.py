@@ -402,14 +402,151 @@ def test_spp_limits_train_and_validate_on_the_renders_within(noisy_dataset: Path
         assert len(err.splitlines()) == 1 and message in err, err
 
 
-def test_a_dataset_without_a_validation_scene_says_so(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
-    data = write_synthetic_dataset(tmp_path / "ds", scenes=2, res=(32, 32), spp=(4,), val_scenes=())
-    assert main(["--data", str(data), "--out", str(tmp_path / "r"), "--patch", "28", "--no-progress"]) == 1
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "too small for validation: none of its 2 scenes is in split 'val'" in err[0]
-    assert "--val-every 0" in err[0]
-    assert main(["--data", str(data), "--out", str(tmp_path / "r"), "--patch", "28", "--val-every", "0",
-                 "--steps", "1", "--batch", "2", "--preset", "flat-s", "--no-progress"]) == 0
+def test_a_dataset_without_a_validation_scene_validates_on_its_training_scenes(
+        tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """Too few scenes to hold one out: the run validates on its training scenes, says so in one
+    line at the start, and prints each validation's score (beside the noisy input's)."""
+    data = write_synthetic_dataset(tmp_path / "ds", scenes=2, res=(32, 32), spp=(4, 16), val_scenes=())
+    run = tmp_path / "r"
+    assert main(["--data", str(data), "--out", str(run), "--patch", "28", "--steps", "2", "--batch", "2",
+                 "--val-every", "1", "--preset", "flat-s", "--no-oidn", "--no-progress"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert out[0] == ("train: validating every 1 steps on the 2 training scenes (4 images): the data holds no "
+                      "scene out (split 'val'), so the score measures the fit to these scenes, not to others")
+    vals = [r for r in _log(run) if r["type"] == "val"]
+    assert [(r["step"], r["images"]) for r in vals] == [(1, 4), (2, 4)]
+    for record, line in zip(vals, out[1:3]):
+        assert line.startswith(f"train: step {record['step']}: validation PSNR {record['psnr']:.2f} dB on the "
+                               f"training scenes (4 images; noisy {record['noisy_psnr']:.2f}, ")
+    assert read_checkpoint(run / "last.ckpt").header["data_config"]["scenes"] == {"train": 2, "val": 0}
+    assert (run / "best.ckpt").exists()
+
+
+def test_a_crop_larger_than_the_images_is_refused_before_the_run_exists(
+        dataset: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """Crops larger than the data's images: one line naming the largest crop that fits (a multiple
+    of the network's alignment), and no run folder."""
+    small = write_synthetic_dataset(tmp_path / "d30", scenes=2, res=(36, 30), spp=(4,), val_scenes=(1,))
+    for flags, fits in ((["--preset", "flat-s"], 32), (["--arch", "dense_unet", "--levels", "1"], 28)):
+        run = tmp_path / "runs" / "r"
+        data = dataset if fits == 32 else small
+        assert main(["--data", str(data), "--out", str(run), "--patch", "40", *flags]) == 1
+        err = capsys.readouterr().err.strip().splitlines()
+        size = "32x32" if fits == 32 else "36x30"
+        assert err == [f"train: error: {data}: its {size} images are smaller than the 40px training crops; give "
+                       f"--patch {fits} or less"]
+        assert not (tmp_path / "runs").exists()
+
+
+def test_a_failed_start_leaves_nothing_behind(dataset: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """A start that fails (bad data before the folder is made, or in its first step after) removes
+    what it made: its files and the folders it created, never a folder that was there."""
+    cfg = _config(tmp_path, model=TINY_MODEL, batch=2, val_every=0, progress=False)
+    assert main(["--data", str(tmp_path / "missing"), "--out", str(tmp_path / "a" / "b"), "--config", cfg]) == 1
+    assert "dataset.json: not found" in capsys.readouterr().err and not (tmp_path / "a").exists()
+    flat = _config(tmp_path, model=TINY_MODEL, batch=2, val_every=0, progress=False,
+                   patch={"size": 28, "min_unique": 10**6})  # no crop passes: the first step fails
+    assert main(["--data", str(dataset), "--out", str(tmp_path / "a" / "b"), "--config", flat]) == 1
+    assert "the training images are almost flat" in capsys.readouterr().err and not (tmp_path / "a").exists()
+    kept = tmp_path / "mine"
+    kept.mkdir()
+    (kept / "notes.txt").write_text("mine")
+    assert main(["--data", str(dataset), "--out", str(kept), "--config", flat]) == 1
+    assert [p.name for p in kept.iterdir()] == ["notes.txt"] and (kept / "notes.txt").read_text() == "mine"
+
+
+def test_ctrl_c_before_the_first_checkpoint_leaves_nothing_behind(dataset: Path, tmp_path: Path,
+                                                                   monkeypatch: pytest.MonkeyPatch,
+                                                                   capsys: pytest.CaptureFixture) -> None:
+    import training.train as train_module
+
+    def interrupted(*args: object, **kwargs: object) -> None:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(train_module, "train_step", interrupted)
+    cfg = _config(tmp_path, model=TINY_MODEL, batch=2, val_every=0, progress=False)
+    assert main(["--data", str(dataset), "--out", str(tmp_path / "a" / "b"), "--config", cfg]) == 130
+    assert "resume with" not in capsys.readouterr().err and not (tmp_path / "a").exists()
+
+
+def test_train_out_never_replaces_what_is_there(dataset: Path, tmp_path: Path,
+                                                capsys: pytest.CaptureFixture) -> None:
+    """``train --out`` (a new run) refuses a file, a run's files without its last.ckpt, a recipe
+    run and a dataset, each left as it was; a run with a last.ckpt is refused too (--resume
+    continues it: test_cli_refuses_to_overwrite_a_run)."""
+    cfg = _config(tmp_path, model=TINY_MODEL, batch=2, val_every=0, progress=False)
+    cases = {"file": None, "partial": {"log.jsonl": "{}\n", "train_config.json": "{}"},
+             "recipe": {"recipe.json": "{}"}, "data": {"dataset.json": "{}"}}
+    messages = {"file": "exists and is not a folder",
+                "partial": "holds a run's files without a last.ckpt to resume from (log.jsonl, train_config.json)",
+                "recipe": "holds a recipe run (recipe.json), not a run to add to; choose another --out",
+                "data": "holds a dataset (dataset.json), not a run to add to"}
+    for name, files in cases.items():
+        out = tmp_path / name
+        if files is None:
+            out.write_text("a file")
+        else:
+            out.mkdir()
+            for file, text in files.items():
+                (out / file).write_text(text)
+        before = out.read_bytes() if files is None else {p.name: p.read_bytes() for p in out.iterdir()}
+        assert main(["--data", str(dataset), "--out", str(out), "--config", cfg, "--steps", "1"]) == 1
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and messages[name] in err[0], err
+        after = out.read_bytes() if files is None else {p.name: p.read_bytes() for p in out.iterdir()}
+        assert after == before, name
+
+
+def test_the_progress_bar_runs_to_the_limit_that_stops_the_run(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Under --minutes (or --cpu-minutes) the bar's total is the step the run is expected to stop
+    at, from the pace of its steps so far, and its description names the limit; without a limit
+    that comes first it stays the run's steps."""
+    import types
+
+    import training.train as train_module
+
+    clock = [100.0]
+    monkeypatch.setattr(train_module, "time", types.SimpleNamespace(monotonic=lambda: clock[0]))
+    cpu = [0.0]
+    config = types.SimpleNamespace(steps=20_000, cpu_budget_s=0.0)
+    run = types.SimpleNamespace(step=0, config=config, cpu_used=lambda: cpu[0])
+
+    class Bar:
+        total, description, refreshed = 20_000, None, 0
+
+        def set_description(self, desc: str, refresh: bool = True) -> None:
+            self.description = desc
+
+        def refresh(self) -> None:
+            self.refreshed += 1
+
+    bar = Bar()
+    forecast = train_module._Forecast(run, deadline=100.0 + 120.0)  # --minutes 2
+    run.step, clock[0], cpu[0] = 10, 110.0, 20.0  # 10 steps in 10 s
+    forecast.show(bar)
+    assert (bar.total, bar.description, bar.refreshed) == (120, "time limit", 1)
+    run.step, clock[0] = 12, 110.5  # within a second of the last revision: left as it is
+    forecast.show(bar)
+    assert bar.total == 120
+    run.step, clock[0] = 40, 160.0  # slower now: 40 steps in 60 s, 60 s left
+    forecast.show(bar)
+    assert bar.total == 80
+    run.step, clock[0] = 80, 160.2  # the run reached the total and goes on: revised at once
+    forecast.show(bar)
+    assert bar.total == 160  # ceil(59.8 s left / 0.7525 s a step) = 80 more
+    run.step = 150  # stopped by the limit here: the bar ends at the step reached
+    forecast.finish(bar)
+    assert bar.total == 150
+    config.cpu_budget_s = 60.0  # 20 CPU-seconds left at 0.5 a step: the CPU budget comes first
+    run.step, cpu[0] = 40, 30.0
+    forecast = train_module._Forecast(run, deadline=None)
+    run.step, clock[0], cpu[0] = 60, 170.0, 40.0
+    forecast.show(bar)
+    assert (bar.total, bar.description) == (60 + 40, "cpu budget")
+    config.cpu_budget_s, config.steps = 0.0, 70  # no limit before the steps: the run's steps
+    run.step, clock[0] = 61, 172.0
+    forecast.show(bar)
+    assert (bar.total, bar.description) == (70, "")
 
 
 def test_out_is_created_with_its_parents_and_minutes_stop_a_run(dataset: Path, tmp_path: Path,

@@ -26,14 +26,15 @@ from typing import Any
 from imaging.errors import ConfigError, DenoiserError
 from imaging.json_read import parse_json
 from imaging.output_paths import check_not_inputs
-from console.progress import tqdm_bars
+from console.progress import console_lines, tqdm_bars
 from console.usage import OneLineParser
 from model.config import ARCHS, AUX_MODES, AUX_NORMALS, AUX_PREFILTERS, PRESETS, UNET_ARCHS, ModelConfig, preset
 from model.device import DEVICES
 from training.distributed import RankInfo, ddp_config, launch, rank_from_env, train_distributed
 from training.recipe import load_recipe, recipe_names
 from training.recipe_run import RecipeRun, plan, run_recipe
-from training.train import RUN_FILES, resume_config, train
+from training.start_checks import RUN_FILES
+from training.train import resume_config, train
 from training.train_config import LOSS_NORMS, LOSS_SPACES, RESUMABLE_OVERRIDES, TrainConfig
 
 _FLAGS = {  # argparse dest -> TrainConfig field
@@ -83,11 +84,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--data-root", metavar="DIR",
                    help="--recipe: where its datasets are rendered, one folder each (default data)")
     p.add_argument("--dry-run", action="store_true", default=False,
-                   help="--recipe: print the commands it amounts to; render and train nothing")
+                   help="--recipe: run the start's checks and print the commands it amounts to, with what each "
+                        "start will say (crops, validation); render and train nothing")
     p.add_argument("--data", help="dataset folder (dataset.json, manifest.jsonl, images/); with --recipe: train "
                                   "on it instead of the recipe's data")
     p.add_argument("--out", required=True, help="run folder (created with its parents: checkpoints, log.jsonl, "
-                                                "curves.png)")
+                                                "curves.png); a new run replaces nothing there")
     p.add_argument("--config", help="JSON file with TrainConfig fields")
     p.add_argument("--resume", action="store_true", default=False, help="continue the run in --out")
     p.add_argument("--steps", type=int, help=f"total optimiser steps (default {d.steps})")
@@ -180,7 +182,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="accumulate gradients over chunks of this size (faster; BatchNorm per chunk)")
     p.add_argument("--seed", type=int)
     p.add_argument("--log-every", type=int, help="steps per train-loss log line (default 100)")
-    p.add_argument("--val-every", type=int, help="steps between validations, 0 = never (default 2000)")
+    p.add_argument("--val-every", type=int, help="steps between validations, 0 = never (default 2000); data "
+                                                 "without a held-out scene validates on its training scenes")
     p.add_argument("--ckpt-every", type=int, help="steps between last.ckpt saves (default 1000)")
     p.add_argument("--max-bad-steps", type=int, help="stop after this many NaN/Inf steps in a row (20)")
     p.add_argument("--threads", type=int, help="torch CPU threads (default: torch's choice)")
@@ -328,7 +331,7 @@ def recipe_main(parser: OneLineParser, args: argparse.Namespace) -> int:
             return 0
         enabled = run.control.get("progress", True)
         result = run_recipe(recipe, run, tqdm_bars("step", enabled=enabled), tqdm_bars("scene", enabled=enabled),
-                            log=lambda line: print(f"train: {line}", flush=True))
+                            log=console_lines("train: "))
     except (DenoiserError, OSError, MemoryError) as exc:
         return parser.fail(exc)
     except KeyboardInterrupt:
@@ -372,7 +375,8 @@ def main(argv: list[str] | None = None) -> int:
         if rank is not None and rank.world > 1:
             result = train_distributed(config, rank, resume=resume, progress=progress, resume_hint=hint)
         else:
-            result = train(config, resume=resume, progress=progress, minutes=args.minutes)
+            result = train(config, resume=resume, progress=progress, minutes=args.minutes,
+                           log=console_lines("train: "))
     except (DenoiserError, OSError, MemoryError) as exc:
         tag = f"rank {rank.rank}: " if rank is not None and rank.world > 1 and "rank " not in str(exc) else ""
         return parser.fail(exc, tag)

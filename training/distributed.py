@@ -240,9 +240,9 @@ class RankRun(_Run):
         """The ranks compute on CPU cores (gloo): ``auto`` means the CPU here (:func:`ddp_config`)."""
         return choose_device("cpu")
 
-    def _open(self, resume: bool) -> Checkpoint | None:
+    def _open(self, resume: bool, replace_partial: bool = False) -> Checkpoint | None:
         if self.primary:
-            return super()._open(resume)
+            return super()._open(resume, replace_partial)
         self.log = _NoLog()
         return read_checkpoint(self.last_path) if resume else None
 

@@ -21,6 +21,10 @@ optimisation CPU time, leaving the stage resumable (run again, with a larger bud
 With ``--data MINE`` (and ``--extra-data``), the recipe trains on those folders instead of its
 datasets; with ``--init-from MODEL`` as well, it fine-tunes: one stage, ``finetune``, with the final
 stage's network and crops and the recipe's ``[finetune]`` optimisation, starting from MODEL's weights.
+On the user's data, crops larger than its images shrink to fit them (:func:`fit_patch`), and data
+without a held-out scene validates on its training scenes (:mod:`training.start_checks`).
+:func:`check_run` makes every check of a start before anything is written (``--dry-run`` runs it
+too), and a start that fails before a stage kept a file leaves no run folder behind.
 """
 from __future__ import annotations
 
@@ -41,6 +45,8 @@ from model.checkpoint import read_checkpoint, strip_optimizer
 from model.config import ModelConfig
 from training.dataset import read_manifest
 from training.recipe import FINETUNE, DatasetSpec, Recipe, Stage, parse_recipe
+from training.start_checks import (OTHER_OUTPUTS, RUN_FILES, check_start, data_image_size, fitting_patch,
+                                   validation_note)
 from training.train import resume_config, train
 from training.train_config import RESUMABLE_OVERRIDES, TrainConfig
 
@@ -106,25 +112,80 @@ def stage_init(recipe: Recipe, stage: Stage, run: RecipeRun) -> str | None:
     return str(run.out / stage.init_from / ("best.ckpt" if validates else "last.ckpt"))
 
 
+def stage_config(recipe: Recipe, stage: Stage, run: RecipeRun) -> tuple[TrainConfig, bool, list[str]]:
+    """The TrainConfig ``stage`` trains with here, whether it resumes (its folder holds a
+    ``last.ckpt``), and the lines a start prints about its choices. On the user's data the crops
+    shrink to fit its images where the recipe's do not (:func:`fit_patch`)."""
+    folder = run.out / stage.name
+    wanted = stage.train_config(folder, stage_data(recipe, stage, run), stage_init(recipe, stage, run), run.control)
+    notes: list[str] = []
+    if run.data:
+        wanted, note = fit_patch(wanted)
+        notes += [note] if note else []
+    resume = (folder / "last.ckpt").exists()
+    return (_resumed_config(folder, wanted) if resume else wanted), resume, notes
+
+
+def fit_patch(config: TrainConfig) -> tuple[TrainConfig, str | None]:
+    """``config`` with crops no larger than its data's smallest images (the largest side the
+    network takes without padding: :func:`training.start_checks.fitting_patch`), and the line that
+    says so (None: the recipe's crops fit, or no crop does and the start refuses the data)."""
+    size = data_image_size([config.data, *config.extra_data])
+    if size is None or config.patch.size <= min(size):
+        return config, None
+    fits = fitting_patch(config.model, size)
+    if not fits:
+        return config, None
+    note = (f"training crops of {fits} px: the recipe's {config.patch.size} px crops are larger than the data's "
+            f"{size[0]}x{size[1]} images")
+    return dataclasses.replace(config, patch=dataclasses.replace(config.patch, size=fits)), note
+
+
+def check_run(recipe: Recipe, run: RecipeRun) -> dict[str, list[str]]:
+    """Every check a start makes before it writes anything: the run folder (:func:`_check_recipe`),
+    and for each stage that trains on the user's data and is not finished, its folder, data and
+    crops (:func:`training.start_checks.check_start`). Returns each such stage's lines for the
+    console (its crops, its validation). The recipe's own datasets are checked once rendered."""
+    _check_recipe(run, recipe)
+    notes: dict[str, list[str]] = {}
+    if not run.data:
+        return notes
+    for stage in stages_to_run(recipe, run):
+        if (run.out / stage.name / DONE).exists():
+            continue
+        config, resume, lines = stage_config(recipe, stage, run)
+        data_plan, _ = check_start(config, resume, replace_partial=True)
+        note = validation_note(config, data_plan)
+        notes[stage.name] = lines + ([note] if note else [])
+    return notes
+
+
 def plan(recipe: Recipe, run: RecipeRun) -> list[str]:
     """The commands the recipe amounts to (what ``--dry-run`` prints): generate-dataset per dataset
-    it needs, then train per stage."""
+    it needs, then train per stage, each with the lines its start would print. Runs the checks of
+    a start (:func:`check_run`), so that a command that would fail fails here, writing nothing."""
     lines = [f"# recipe {recipe.name} ({recipe.path}), sha256 {recipe.sha256[:16]}"]
     stages = stages_to_run(recipe, run)
+    notes = check_run(recipe, run)
+    if run.minutes is not None:
+        lines.append(f"# this command stops after {run.minutes:g} minutes (the same command continues the run)")
+    if "cpu_budget_s" in run.control:
+        lines.append(f"# each stage stops after {run.control['cpu_budget_s'] / 60:g} CPU-minutes of optimisation "
+                     "(the same command continues it)")
     if not run.data:
         needed = dict.fromkeys(name for stage in stages for name in stage.data)
         lines += [recipe.datasets[name].command(str(run.data_root)) for name in needed]
     for stage in stages:
-        config = stage.train_config(run.out / stage.name, stage_data(recipe, stage, run),
-                                    stage_init(recipe, stage, run), run.control)
+        config = stage_config(recipe, stage, run)[0]
         words = [f"train --data {config.data}"] + [f"--extra-data {d}" for d in config.extra_data]
         words += [f"--out {config.out}"] + ([f"--init-from {config.init_from}"] if config.init_from else [])
-        settings = ", ".join(f"{k} {v}" for k, v in {"network": stage.network, "patch": stage.patch.size,
+        settings = ", ".join(f"{k} {v}" for k, v in {"network": stage.network, "patch": config.patch.size,
                                                           "detail_crops": stage.patch.detail, **stage.fields}.items())
         source = shared_stage(recipe, stage, run) if _untrained(run.out / stage.name) else None
         lines.append(f"# stage {stage.name}: " + (f"copied from {source} (the same stage, finished)" if source
                                                    else " ".join(words)))
         lines.append(f"#   with {settings}")
+        lines += [f"#   {note}" for note in notes.get(stage.name, [])]
         if stage.measured:
             lines.append("#   measured: " + ", ".join(f"{k} {v}" for k, v in stage.measured.items()))
     return lines
@@ -173,27 +234,67 @@ def _read_record(path: Path, remedy: str) -> dict[str, Any]:
     return record
 
 
+def _inputs(run: RecipeRun) -> dict[str, Any]:
+    """What ``recipe.json`` records of the user's inputs (``--data``, ``--init-from``)."""
+    return {"data": [str(Path(d).resolve()) for d in run.data],
+            "init_from": str(Path(run.init_from).resolve()) if run.init_from else None}
+
+
 def _check_recipe(run: RecipeRun, recipe: Recipe) -> None:
-    """``run.out`` holds nothing, or a run of this very recipe (its sha256) on the same data from the
-    same warm start (``--data``, ``--init-from``): never a mix."""
+    """``run.out`` holds nothing, a run of this very recipe (its sha256) on the same data from the
+    same warm start (``--data``, ``--init-from``), or stage folders without ``recipe.json`` (a run
+    carried from another machine); never a mix, a file, a plain run's files or a dataset."""
     out, path = run.out, run.out / "recipe.json"
-    inputs = {"data": [str(Path(d).resolve()) for d in run.data],
-              "init_from": str(Path(run.init_from).resolve()) if run.init_from else None}
     if path.exists():
         saved = _read_record(path, "use another --out")
         if saved.get("sha256") != recipe.sha256:
             raise ConfigError(f"{out} holds a run of recipe {saved.get('name')!r} (sha256 "
                               f"{str(saved.get('sha256'))[:12]}), not of {recipe.name} ({recipe.sha256[:12]}); "
                               "use another --out")
+        inputs = _inputs(run)
         for key, flag in (("data", "--data"), ("init_from", "--init-from")):
             was = saved.get(key, [] if key == "data" else None)
             if was != inputs[key]:
                 raise ConfigError(f"{out} holds a run with {flag} {was or 'not given'}, not "
                                   f"{inputs[key] or 'not given'}; use another --out")
         return
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"{out}: exists and is not a folder; use another --out")
+    found = [name for name in (*RUN_FILES, *OTHER_OUTPUTS) if (out / name).exists()]
+    if found:
+        raise ConfigError(f"{out} holds {', '.join(found)}: not a recipe run (a plain train run or a dataset); "
+                          "use another --out")
+
+
+def _start_recipe(run: RecipeRun, recipe: Recipe) -> list[Path]:
+    """Write ``recipe.json`` into ``run.out`` where it is not yet; returns what this made (the
+    file, then the folders it made, deepest first; nothing for a run that goes on)."""
+    out, path = run.out, run.out / "recipe.json"
+    if path.exists():
+        return []
+    made = [p for p in (out, *out.parents) if not p.exists()]
     out.mkdir(parents=True, exist_ok=True)
     write_text_atomic(path, json.dumps({"name": recipe.name, "sha256": recipe.sha256, "source": str(recipe.path),
-                                        **inputs, "text": recipe.path.read_text(encoding="utf-8")}, indent=1) + "\n")
+                                        **_inputs(run), "text": recipe.path.read_text(encoding="utf-8")},
+                                       indent=1) + "\n")
+    return [path, *made]
+
+
+def _undo_start(made: list[Path]) -> None:
+    """Remove ``recipe.json`` and the folders this command made (:func:`_start_recipe`) where the
+    run folder holds nothing else: a start that failed before any stage kept a file leaves
+    nothing behind (a stage's own failed start removes its files: :func:`training.train.train`)."""
+    if not made:
+        return
+    path, folders = made[0], made[1:]
+    if any(p != path for p in path.parent.iterdir()):
+        return
+    path.unlink(missing_ok=True)
+    for folder in folders:
+        try:
+            folder.rmdir()
+        except OSError:  # not empty: something else is in it
+            return
 
 
 def _resumed_config(folder: Path, wanted: TrainConfig) -> TrainConfig:
@@ -221,13 +322,17 @@ def run_stage(recipe: Recipe, stage: Stage, run: RecipeRun, progress: ProgressFa
         source = shared_stage(recipe, stage, run)
         if source is not None:
             return take_shared_stage(source, folder, log)
-    wanted = stage.train_config(folder, stage_data(recipe, stage, run), stage_init(recipe, stage, run), run.control)
-    resume = (folder / "last.ckpt").exists()
-    config = _resumed_config(folder, wanted) if resume else wanted
+    config, resume, notes = stage_config(recipe, stage, run)
     where = f"resuming at step {read_checkpoint(folder / 'last.ckpt').header['step']}" if resume else "starting"
     data = ", ".join(Path(d).name for d in (config.data, *config.extra_data))
-    log(f"stage {stage.name}: {where} ({config.steps} steps, {config.model.arch}, data {data})")
-    result = train(config, resume=resume, progress=progress, minutes=minutes, recipe=recipe.identity(stage.name))
+    limits = [f"{config.steps} steps"] + ([f"{minutes:.3g} minutes"] if minutes is not None else []) + \
+        ([f"{config.cpu_budget_s / 60:.3g} CPU-minutes"] if "cpu_budget_s" in run.control else [])
+    span = limits[0] if len(limits) == 1 else f"{', '.join(limits[:-1])} or {limits[-1]}, whichever comes first"
+    log(f"stage {stage.name}: {where} ({span}, {config.model.arch}, data {data})")
+    for note in notes:
+        log(note)
+    result = train(config, resume=resume, progress=progress, minutes=minutes, recipe=recipe.identity(stage.name),
+                   log=log, replace_partial=True)
     if result.stopped == "time" or (result.stopped == "cpu budget" and "cpu_budget_s" in run.control):
         return None  # stopped by this command's limit, not the recipe's: the same command goes on
     record = {"step": result.step, "best_psnr": result.best_psnr, "stopped": result.stopped}
@@ -297,15 +402,20 @@ def run_recipe(recipe: Recipe, run: RecipeRun, progress: ProgressFactory | None 
 
     start = time.monotonic()
     stages = stages_to_run(recipe, run)
-    _check_recipe(run, recipe)
-    if not run.data:
-        render_datasets(recipe, stages, run, data_progress, log)
-    finished: dict[str, dict[str, Any]] = {}
-    for stage in stages:
-        left = None if run.minutes is None else run.minutes - (time.monotonic() - start) / 60.0
-        record = None if left is not None and left <= 0 else run_stage(recipe, stage, run, progress, left, log)
-        if record is None:
-            last = stage is stages[-1]
-            return RecipeResult(_model_file(recipe, stages, run) if last else None, stage.name, finished)
-        finished[stage.name] = record
-    return RecipeResult(_model_file(recipe, stages, run), None, finished)
+    check_run(recipe, run)
+    made = _start_recipe(run, recipe)
+    try:
+        if not run.data:
+            render_datasets(recipe, stages, run, data_progress, log)
+        finished: dict[str, dict[str, Any]] = {}
+        for stage in stages:
+            left = None if run.minutes is None else run.minutes - (time.monotonic() - start) / 60.0
+            record = None if left is not None and left <= 0 else run_stage(recipe, stage, run, progress, left, log)
+            if record is None:
+                last = stage is stages[-1]
+                return RecipeResult(_model_file(recipe, stages, run) if last else None, stage.name, finished)
+            finished[stage.name] = record
+        return RecipeResult(_model_file(recipe, stages, run), None, finished)
+    except BaseException:
+        _undo_start(made)
+        raise

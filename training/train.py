@@ -14,6 +14,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import json
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -23,7 +24,7 @@ from typing import Any
 import torch
 
 from imaging.atomic_io import TMP_PREFIX, write_text_atomic
-from imaging.errors import CheckpointError, ConfigError, DatasetError, DenoiserError, TrainingError
+from imaging.errors import CheckpointError, ConfigError, DenoiserError, TrainingError
 from imaging.hashing import file_sha256
 from console.progress import ProgressBar, ProgressFactory
 from model.architectures import build_model
@@ -31,13 +32,14 @@ from model.checkpoint import (Checkpoint, model_from_checkpoint, read_checkpoint
                               restore_rng, save_checkpoint)
 from model.device import choose_device
 from training.batches import BatchSource, auto_workers
-from training.dataset import (SceneRecord, ValImage, load_training_pairs, load_val_images, read_dataset_config,
-                           read_manifest)
+from training.dataset import ValImage, load_training_pairs, load_val_images
 from model.grow import grow_model
 from model.shapes import check_fits_in_memory
 from training.patches import TrainingPair
 from training.provenance import card_meta, data_pixel_filter, hardware, inherited
 from training.run_log import RunLog, plot_curves
+from training.start_checks import (RUN_FILES, DataPlan, check_patch, check_run_folder, plan_data,
+                                   validation_note)
 from training.step import NonFiniteGuard, train_step
 from training.train_config import RESUMABLE_OVERRIDES, TrainConfig
 from model.transfer import get_transfer
@@ -48,8 +50,6 @@ DATASET_ID_STRIDE = 1_000_000  # scene ids of the k-th dataset of a run are its 
 # TrainConfig fields that the configs of the first runs lack, with the values those runs trained with
 # (the defaults differ)
 _UNRECORDED = {"lr_warmup": 0, "lr_cosine_steps": 0, "lr_final": 0.01}
-# dataset.json fields a resumed run must see unchanged
-_DATA_KEYS = ("spp", "ref_spp", "filter", "aovs", "variance")
 
 
 @dataclass
@@ -82,9 +82,6 @@ def build_optimizer(model: torch.nn.Module, config: TrainConfig) -> torch.optim.
     return torch.optim.Adam(model.parameters(), lr=config.lr, fused=True if config.fused_adam else None)
 
 
-RUN_FILES = ("last.ckpt", "best.ckpt", "log.jsonl", "train_config.json", "curves.png")  # what a run writes
-
-
 def resume_config(out: str | Path, overrides: dict[str, Any]) -> TrainConfig:
     """The config of the run in ``out`` (from its last.ckpt) with the allowed ``overrides``."""
     ckpt = read_checkpoint(Path(out) / "last.ckpt")
@@ -99,56 +96,6 @@ def resume_config(out: str | Path, overrides: dict[str, Any]) -> TrainConfig:
     return dataclasses.replace(base, out=str(out), **overrides)
 
 
-def _check_data_config(data_config: dict[str, Any], ckpt: Checkpoint | None, config: TrainConfig) -> None:
-    if config.model.aux_inputs and not {"alb", "nrm"} <= set(data_config.get("aovs") or []):
-        raise DatasetError(f"{config.data}: the model needs albedo/normal but dataset.json lists aovs "
-                           f"{data_config.get('aovs')!r}")
-    if config.model.noise_input and not data_config.get("variance"):
-        raise DatasetError(f"{config.data}: the model takes noise input but the dataset has no variance "
-                           "images (generate it with --variance)")
-    saved = ckpt.header.get("data_config") if ckpt is not None else None
-    if saved:
-        diff = [k for k in _DATA_KEYS if saved.get(k) != data_config.get(k)]
-        if diff:
-            raise DatasetError(f"{config.data}: dataset differs from the one this run was trained on "
-                               f"({', '.join(f'{k}: {saved.get(k)!r} -> {data_config.get(k)!r}' for k in diff)})")
-
-
-def _within(record: SceneRecord, min_spp: int, max_spp: int, root: Path) -> SceneRecord:
-    """``record`` with its renders of fewer than ``min_spp`` or more than ``max_spp`` (0: no limit)
-    spp left out (none left: an error)."""
-    spp = tuple(s for s in record.spp if s >= min_spp and (not max_spp or s <= max_spp))
-    if not spp:
-        wanted = " and ".join(f"{op} {n}" for op, n in ((">=", min_spp), ("<=", max_spp)) if n)
-        raise DatasetError(f"{root}: scene {record.index} has no render at {wanted} spp "
-                           f"(it has {', '.join(map(str, record.spp))})")
-    return dataclasses.replace(record, spp=spp)
-
-
-def _check_scene_counts(data_config: dict[str, Any], ckpt: Checkpoint | None, config: TrainConfig) -> None:
-    """A resumed run must train on the scenes it started with: a dataset that has grown (or lost
-    scenes) since would change the run without a trace. Checkpoints without the record pass."""
-    saved = ckpt.header.get("data_config") if ckpt is not None else None
-    if not saved:
-        return
-    extra = saved.get("extra_data") or []
-    if not isinstance(extra, list) or not all(isinstance(o, dict) for o in extra):
-        raise CheckpointError(f"{ckpt.path}: corrupt data_config in checkpoint")
-    olds = [saved, *extra]
-    folders = (config.data, *config.extra_data)
-    for folder, old, new in zip(folders, olds, [data_config, *data_config.get("extra_data", [])]):
-        if "scenes" in old and old["scenes"] != new["scenes"]:
-            (was_train, was_val), (now_train, now_val) = _split_counts(old["scenes"]), _split_counts(new["scenes"])
-            raise DatasetError(f"{folder}: the run was trained on {was_train} train / {was_val} val scenes, the "
-                               f"dataset now gives {now_train} / {now_val} (scenes added or removed since; start a "
-                               "new run, e.g. with --init-from, to train on them)")
-
-
-def _split_counts(scenes: Any) -> tuple[Any, Any]:
-    """(train, val) of a data config's ``scenes`` record (as recorded, whatever it holds)."""
-    return (scenes.get("train"), scenes.get("val")) if isinstance(scenes, dict) else (scenes, None)
-
-
 def _remove_temporaries(folder: Path) -> None:
     """Delete half-written files (``.tmp-*``) that a killed run left; never a finished file."""
     for leftover in folder.glob(f"{TMP_PREFIX}*"):
@@ -161,15 +108,20 @@ class _Run:
     primary = True  # writes the run's files (under DDP only rank 0 does: training.distributed)
     reduce_loss: Callable[[float], float] | None = None  # chunk loss -> the value all DDP ranks agree on
 
-    def __init__(self, config: TrainConfig, resume: bool, recipe: dict[str, Any] | None = None) -> None:
+    def __init__(self, config: TrainConfig, resume: bool, recipe: dict[str, Any] | None = None,
+                 log: Callable[[str], None] | None = None, replace_partial: bool = False) -> None:
         self.config = config
         self.device = self.choose_device()
         self.recipe = recipe  # {"name", "sha256", "stage"} of the recipe that runs this, for the card
+        self.say = log or (lambda line: None)  # one line for the console (validation scores)
         self.dir = Path(config.out)
         self.log = RunLog(self.dir / "log.jsonl")
         self.last_path, self.best_path = self.dir / "last.ckpt", self.dir / "best.ckpt"
-        ckpt = self._open(resume)
-        self.data_config, self.pairs, val_images = self._load_data(ckpt)
+        ckpt = self._open(resume, replace_partial)
+        plan = plan_data(config, ckpt)
+        check_patch(config, plan)
+        self.val_label = "the training scenes" if plan.val_on_train else "the held-out scenes"
+        self.data_config, self.pairs, val_images = self._load_data(plan)
         self.validator = Validator(val_images, config.oidn) if val_images and config.val_every else None
         self.model, self.optimizer = self._build(ckpt)
         # the loss's map of output and reference (None: compare in the network's transfer space)
@@ -198,65 +150,66 @@ class _Run:
         self.saved_step: int | None = self.step if ckpt else None
         if ckpt:
             self.log.truncate_after(self.step)
+        self.created: list[Path] = [] if resume or not self.primary else self._create()
+        note = validation_note(config, plan)
+        if note:
+            self.say(note)
 
     def choose_device(self) -> torch.device:
         """Where this run computes: the config's ``device`` (:func:`model.device.choose_device`)."""
         return choose_device(self.config.device)
 
-    def _load_data(self, ckpt: Checkpoint | None) -> tuple[dict[str, Any], list[TrainingPair], list[ValImage]]:
+    def _load_data(self, plan: DataPlan) -> tuple[dict[str, Any], list[TrainingPair], list[ValImage]]:
         """The primary dataset's config (the extra datasets' configs under ``extra_data``), the
-        training pairs and validation images of every dataset (scene ids of the k-th dataset
-        offset by k * :data:`DATASET_ID_STRIDE`, so they stay distinct)."""
+        training pairs and validation images of every dataset of ``plan`` (scene ids of the k-th
+        dataset offset by k * :data:`DATASET_ID_STRIDE`, so they stay distinct)."""
         config, model = self.config, self.config.model
         pairs: list[TrainingPair] = []
         val_images: list[ValImage] = []
-        data_config: dict[str, Any] = {}
-        chosen = []  # (root, train records, val records) of every dataset, checked before any image is read
-        for k, folder in enumerate((config.data, *config.extra_data)):
-            root = Path(folder)
-            this = read_dataset_config(root)
-            _check_data_config(this, ckpt if k == 0 else None, config)
-            records = [r for r in read_manifest(root) if not config.max_scenes or r.index < config.max_scenes]
-            if config.min_spp or config.max_spp:
-                records = [_within(r, config.min_spp, config.max_spp, root) for r in records]
-            train = [r for r in records if r.split == "train"]
-            val = [r for r in records if r.split == "val"]
-            if not train:
-                raise DatasetError(f"{root}: manifest has no scenes in split 'train'")
-            scenes = {"train": len(train), "val": len(val)}
-            if k == 0:
-                data_config = {**this, "scenes": scenes}
-            else:
-                data_config.setdefault("extra_data", []).append({"path": folder, **this, "scenes": scenes})
-            chosen.append((root, train, val))
-        _check_scene_counts(data_config, ckpt, config)
-        if config.val_every and not any(val for _, _, val in chosen):
-            scenes = sum(len(train) for _, train, _ in chosen)
-            raise DatasetError(f"{config.data}: too small for validation: none of its {scenes} scenes is in split "
-                               f"'val' (generate-dataset puts a seeded {data_config.get('val_fraction', 0.1):g} of "
-                               "the scenes there); render more scenes, or train without validation (--val-every 0)")
-        for k, (root, train, val) in enumerate(chosen):
+        for k, (root, train, val) in enumerate(plan.datasets):
             pairs += load_training_pairs(root, train, get_transfer(model.transfer), model.aux_inputs,
                                          converged=config.converged_pairs, noise=model.noise_input,
                                          index_offset=k * DATASET_ID_STRIDE, noise_radius=model.noise_radius,
                                          normals=model.aux_normals)
-            val_images += load_val_images(root, val, model.aux_inputs, model.noise_input,
-                                          index_offset=k * DATASET_ID_STRIDE, normals=model.aux_normals)
-        return data_config, pairs, val_images
+            if config.val_every:
+                val_images += load_val_images(root, val, model.aux_inputs, model.noise_input,
+                                              index_offset=k * DATASET_ID_STRIDE, normals=model.aux_normals)
+        return plan.data_config, pairs, val_images
 
-    def _open(self, resume: bool) -> Checkpoint | None:
+    def _open(self, resume: bool, replace_partial: bool = False) -> Checkpoint | None:
+        """The checkpoint a resume continues (None for a new run, whose folder is only checked:
+        :func:`training.start_checks.check_run_folder`; :meth:`_create` makes it)."""
         if resume:
             ckpt = read_checkpoint(self.last_path)
             _remove_temporaries(self.dir)
             return ckpt
-        if self.last_path.exists():
-            raise ConfigError(f"{self.dir} already holds a run (last.ckpt); use --resume or another --out")
-        if self.dir.exists() and not self.dir.is_dir():
-            raise ConfigError(f"{self.dir}: exists and is not a folder")
-        self.dir.mkdir(parents=True, exist_ok=True)
-        self.log.path.unlink(missing_ok=True)
-        _remove_temporaries(self.dir)
+        check_run_folder(self.dir, resume, replace_partial)
         return None
+
+    def _create(self) -> list[Path]:
+        """Make a new run's folder, once everything it needs has been read and built; returns the
+        folders this made (the folder and any missing parents, deepest first) and deletes the files
+        of an earlier start that left no checkpoint (``replace_partial``: the run folder check let
+        them through)."""
+        created = [p for p in (self.dir, *self.dir.parents) if not p.exists()]
+        self.dir.mkdir(parents=True, exist_ok=True)
+        for name in RUN_FILES:
+            (self.dir / name).unlink(missing_ok=True)
+        _remove_temporaries(self.dir)
+        return created
+
+    def undo_start(self) -> None:
+        """Remove what a new run that never saved a checkpoint wrote: its files, and the folders it
+        made where they are empty now (a failed start leaves nothing behind; a run with a
+        checkpoint, or one resumed, is kept)."""
+        if self.saved_step is not None or not self.primary:
+            return
+        for name in RUN_FILES:
+            (self.dir / name).unlink(missing_ok=True)
+        _remove_temporaries(self.dir)
+        for folder in self.created:
+            with contextlib.suppress(OSError):  # not empty: something else is in it now
+                folder.rmdir()
 
     def _build(self, ckpt: Checkpoint | None) -> tuple[torch.nn.Module, torch.optim.Adam]:
         self.source_header: dict[str, Any] | None = None  # the warm start's header (its card's hours)
@@ -310,13 +263,15 @@ class _Run:
         if path == self.last_path:
             self.saved_step = self.step
 
+    def cpu_used(self) -> float:
+        """Process CPU seconds of optimisation so far, all sittings (what ``cpu_budget_s`` limits)."""
+        m = self.meter
+        return self.cpu_s + time.process_time() - m.started_cpu - m.paused_cpu
+
     def out_of_cpu(self) -> bool:
         """True once the run's optimisation CPU seconds reached ``cpu_budget_s`` (if set)."""
         budget = self.config.cpu_budget_s
-        if not budget:
-            return False
-        m = self.meter
-        return self.cpu_s + time.process_time() - m.started_cpu - m.paused_cpu >= budget
+        return bool(budget) and self.cpu_used() >= budget
 
     def log_train(self) -> None:
         """Write the mean loss since the last train line and reset the meter."""
@@ -340,9 +295,17 @@ class _Run:
             return None
         result = self.validator.run(self.model, self.config.val_tile)
         self.log.append({"type": "val", "step": self.step, **result})
-        if result["psnr"] is not None and (self.best_psnr is None or result["psnr"] > self.best_psnr):
+        better = result["psnr"] is not None and (self.best_psnr is None or result["psnr"] > self.best_psnr)
+        if better:
             self.best_psnr = result["psnr"]
             self.save(self.best_path)
+        score = "n/a" if result["psnr"] is None else f"{result['psnr']:.2f} dB"
+        best = "the best so far" if better else \
+            ("best n/a" if self.best_psnr is None else f"best {self.best_psnr:.2f} dB")
+        yardsticks = [f"{name} {result[key]:.2f}" for name, key in (("noisy", "noisy_psnr"), ("OIDN", "oidn_psnr"))
+                      if result.get(key) is not None]
+        self.say(f"step {self.step}: validation PSNR {score} on {self.val_label} ({result['images']} images; "
+                 f"{', '.join([*yardsticks, best])})")
         return result
 
 
@@ -382,21 +345,84 @@ def _compiled(run: _Run) -> torch.nn.Module:
 
 
 def train(config: TrainConfig, resume: bool = False, progress: ProgressFactory | None = None,
-          minutes: float | None = None, recipe: dict[str, Any] | None = None) -> TrainResult:
+          minutes: float | None = None, recipe: dict[str, Any] | None = None,
+          log: Callable[[str], None] | None = None, replace_partial: bool = False) -> TrainResult:
     """Train (or, with ``resume``, continue) the run described by ``config`` up to ``config.steps``.
 
     ``minutes``: stop this sitting after that many minutes of wall time (validated and saved, so
     ``--resume`` continues it); ``recipe``: {"name", "sha256", "stage"} written into every
-    checkpoint's card. Raises :class:`DatasetError` (also for data without a "val" scene while
-    ``val_every`` > 0), :class:`ConfigError`, :class:`CheckpointError` or :class:`TrainingError`
-    (NaN/Inf for ``max_bad_steps`` steps in a row). A KeyboardInterrupt propagates without saving
-    (a step cut in half is no state to resume from): ``--resume`` continues from the last periodic
+    checkpoint's card; ``log``: gets the start's line about its validation
+    (:func:`training.start_checks.validation_note`) and each validation's score, one line each;
+    ``replace_partial``: the folder's files of a start that left no checkpoint may be replaced
+    (:func:`training.start_checks.check_run_folder`). Every check runs before the run's folder is
+    made, and a new run that stops before its first checkpoint (an error, or Ctrl-C) removes what
+    it wrote. Raises :class:`DatasetError`, :class:`ConfigError` (also for a folder holding
+    something else), :class:`CheckpointError` or :class:`TrainingError` (NaN/Inf for
+    ``max_bad_steps`` steps in a row). A KeyboardInterrupt propagates without saving (a step cut
+    in half is no state to resume from): ``--resume`` continues from the last periodic
     last.ckpt. With ``val_every=0`` there is no validation and no best.ckpt.
     """
     if config.threads:
         torch.set_num_threads(config.threads)
     deadline = None if minutes is None else time.monotonic() + 60.0 * minutes
-    return run_training(_Run(config, resume, recipe), progress, deadline)
+    run = _Run(config, resume, recipe, log, replace_partial)
+    try:
+        return run_training(run, progress, deadline)
+    except BaseException:
+        run.undo_start()
+        raise
+
+
+class _Forecast:
+    """Where this sitting is expected to stop: ``steps``, or sooner where the wall-clock deadline or
+    the CPU budget comes first at the pace of its steps so far. It sets the progress bar's total
+    (at most once a second), so that the bar's estimate of the time left follows the limit that
+    will stop the run, and names that limit in the bar's description."""
+
+    def __init__(self, run: _Run, deadline: float | None) -> None:
+        self.run, self.deadline = run, deadline
+        self.step0, self.wall0, self.cpu0 = run.step, time.monotonic(), run.cpu_used()
+        self.shown = self.wall0
+        self.reason: str | None = None
+
+    def stop_step(self) -> tuple[int, str | None]:
+        """(the step expected to be the last, the limit that stops there: None for ``steps``)."""
+        run, now = self.run, time.monotonic()
+        done = run.step - self.step0
+        last, reason = run.config.steps, None
+        if done <= 0:
+            return last, reason
+        if self.deadline is not None:
+            at = run.step + math.ceil(max(self.deadline - now, 0.0) / ((now - self.wall0) / done))
+            if at < last:
+                last, reason = at, "time limit"
+        budget, used = run.config.cpu_budget_s, run.cpu_used()
+        if budget and used > self.cpu0:
+            at = run.step + math.ceil(max(budget - used, 0.0) / ((used - self.cpu0) / done))
+            if at < last:
+                last, reason = at, "cpu budget"
+        return last, reason
+
+    def show(self, bar: ProgressBar) -> None:
+        """Revise ``bar``'s total (and description) to :meth:`stop_step`, while the run goes on (at
+        once where the run has reached the total)."""
+        now = time.monotonic()
+        if now - self.shown < 1.0 and self.run.step < bar.total:
+            return
+        self.shown = now
+        last, reason = self.stop_step()
+        if reason != self.reason:
+            self.reason = reason
+            bar.set_description(reason or "", refresh=False)
+        if last != bar.total:
+            bar.total = last
+            bar.refresh()
+
+    def finish(self, bar: ProgressBar) -> None:
+        """The run stopped at its limit: the bar's total is the step it reached."""
+        if self.reason is not None and bar.total != self.run.step:
+            bar.total = self.run.step
+            bar.refresh()
 
 
 def _stop_reason(run: _Run, deadline: float | None) -> str | None:
@@ -427,9 +453,14 @@ def run_training(run: _Run, progress: ProgressFactory | None = None, deadline: f
                 raise TrainingError(f"torch.compile failed ({type(exc).__name__}: {first_line}); "
                                     f"train without --compile") from None
         stopped = _stop_reason(run, deadline)
+        forecast = _Forecast(run, deadline) if deadline is not None or config.cpu_budget_s else None
         while run.step < config.steps and stopped is None:
             _one_step(run, net, source, bar)
             stopped = _stop_reason(run, deadline)
+            if forecast is not None and bar is not None and stopped is None and run.step < config.steps:
+                forecast.show(bar)
+        if forecast is not None and bar is not None and stopped is not None:
+            forecast.finish(bar)
         if stopped and run.meter.count + run.meter.skipped:  # stopped between log lines
             run.log_train()
             if config.val_every and run.step % config.val_every:

@@ -65,8 +65,9 @@ class Validator:
     def run(self, model: torch.nn.Module, tile: int = 256) -> dict[str, Any]:
         """Denoise every validation image; return the mean metrics overall and per spp.
 
-        Result: ``{"psnr": ours mean dB, "relmse": ours mean, "images": n, "per_spp": {"16":
-        {"psnr": {"ours", "noisy", "oidn"}, "relmse": {...}}}}``; non-finite means become None.
+        Result: ``{"psnr": ours mean dB, "relmse": ours mean, "images": n, "noisy_psnr": the noisy
+        inputs' mean dB, "oidn_psnr": OIDN's (None without OIDN), "per_spp": {"16": {"psnr": {"ours",
+        "noisy", "oidn"}, "relmse": {...}}}}``; non-finite means become None.
         """
         rows: dict[int, dict[str, list[Metrics | None]]] = defaultdict(lambda: defaultdict(list))
         for image in self.images:
@@ -82,5 +83,9 @@ class Validator:
                          for name, values in rows[spp].items()}
                 for i, metric in enumerate(("psnr", "relmse"))}
         ours_all = [m for spp in rows for m in rows[spp]["ours"]]
+        baseline = {name: _mean([m[0] if m is not None else None for spp in rows for m in rows[spp][name]])
+                    for name in ("noisy", "oidn")}
+        oidn_complete = all(m is not None for spp in rows for m in rows[spp]["oidn"])
         return {"psnr": _mean([m[0] for m in ours_all]), "relmse": _mean([m[1] for m in ours_all]),
-                "images": len(ours_all), "per_spp": per_spp}
+                "images": len(ours_all), "noisy_psnr": baseline["noisy"],
+                "oidn_psnr": baseline["oidn"] if oidn_complete else None, "per_spp": per_spp}
