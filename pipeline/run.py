@@ -1,6 +1,7 @@
 """``render-and-denoise``'s core: render a scene, denoise it, compare, write files and a report.
 
-Outputs in ``out``: noisy.exr, denoised.exr (+ oidn.exr, reference.exr), a PNG preview of each,
+Outputs in ``out``: noisy.exr, denoised.exr (+ oidn.exr and oidn_aux.exr: OIDN colour-only and
+OIDN + albedo + normal; reference.exr), a PNG preview of each,
 comparison.png, metrics.json (written last: a run without it did not finish; a re-run into the
 same folder deletes the old one first), report.html and config.json (the run's settings).
 Writing them, the metrics and the report go a block of rows at a time (:func:`output_bytes` of
@@ -26,8 +27,9 @@ from imaging.peak_rss import PeakRSS
 from rendering.render import RenderResult
 from pipeline.budget import BudgetPlan, budget_candidates, plan_run
 from denoise.denoiser import DenoiseResult, Denoiser
-from pipeline.evaluation import (RenderSettings, aovs_for, check_reference, denoise_output, make_denoiser,
-                                 quality_lines, read_reference, render_input, render_reference, score)
+from pipeline.evaluation import (OIDN, OIDN_AUX, RenderSettings, aovs_for, check_reference, denoise_output,
+                                 make_denoiser, oidn_output, quality_lines, read_reference, render_input,
+                                 render_reference, score, with_aovs)
 from denoise.noise_guard import DEFAULT_PIVOT_SPP, DEFAULT_RADIUS, strength_for
 from denoise.oidn import oidn_available
 from pipeline.report import write_comparison, write_previews, write_report
@@ -65,7 +67,8 @@ def output_bytes(cfg: RenderSettings) -> float:
 
 # every file run() writes into (or removes from) its output folder
 OUTPUT_NAMES = ("config.json", "metrics.json", "report.html", "comparison.png", ".write-test",
-                *(f"{image}.{ext}" for image in ("noisy", "denoised", "oidn", "reference") for ext in ("exr", "png")))
+                *(f"{image}.{ext}" for image in ("noisy", "denoised", OIDN, OIDN_AUX, "reference")
+                  for ext in ("exr", "png")))
 
 
 def _check_out(out: Path) -> None:
@@ -95,7 +98,8 @@ def _oidn_setting(compare: bool | None) -> dict[str, Any]:
     if compare is None and not oidn_available():
         return {"compared": False, "note": "OIDN not compared: pyoidn is not installed "
                 "(pip install '.[oidn]')"}
-    return {"compared": True, "note": "OIDN: Intel Open Image Denoise, colour only (pyoidn)"}
+    return {"compared": True, "note": "OIDN: Intel Open Image Denoise (pyoidn), colour-only and with the "
+            "render's albedo and normals (from an AOV pass with the render's camera rays)"}
 
 
 @dataclass
@@ -170,12 +174,17 @@ def _render_and_denoise(run: _Run) -> None:
 
 
 def _compare(run: _Run) -> None:
-    """OIDN on the same render, and the reference (read, or rendered now)."""
+    """OIDN on the same render (colour-only, then with the render's albedo and normals, rendered
+    now unless the render has them), and the reference (read, or rendered now)."""
     run.oidn = _oidn_setting(run.cfg.compare_oidn)
     if run.oidn["compared"]:
-        run.log("denoising with OIDN")
-        oidn = denoise_output(run.noisy, None)
-        run.images["oidn"], run.timings["oidn_s"] = oidn.image, oidn.seconds
+        run.log("denoising with OIDN colour-only")
+        oidn = oidn_output(run.noisy)
+        run.images[OIDN], run.timings["oidn_s"] = oidn.image, oidn.seconds
+        run.log("rendering albedo and normals; denoising with OIDN + albedo + normal")
+        render, run.timings["aov_render_s"] = with_aovs(run.noisy, run.scene, run.cfg.render)
+        aux = oidn_output(render, aux=True)
+        run.images[OIDN_AUX], run.timings["oidn_aux_s"] = aux.image, aux.seconds
     if run.cfg.render.reference_spp:
         run.log(f"rendering the reference at {run.cfg.render.reference_spp} spp")
         ref = render_reference(run.cfg.render, run.scene, run.aovs)
