@@ -1,9 +1,12 @@
-"""The quality scoreboard: every scene of ../shared/eval-scenes, noisy vs ours vs OIDN colour-only.
+"""The quality scoreboard: every scene of ../shared/eval-scenes, noisy vs ours vs OIDN colour-only vs
+OIDN + albedo + normal.
 
 Each scene at each spp (default 4, 16 and 128; seed 7, as the scenes' reference.json) goes through
 the path ``render-and-denoise`` takes (:func:`pipeline.evaluation.evaluate`): a render in two halves,
 each model with its noise input, the noise guard and the energy correction ("ours", the default
-path), the same network output before the guard as extra columns ("bare"), and OIDN colour-only on the same render. All are
+path), the same network output before the guard as extra columns ("bare"), and OIDN on the same
+render: colour-only (``oidn``) and with the albedo and normals of an AOV pass at the same spp and
+seed (``oidn_aux``; :func:`pipeline.evaluation.with_aovs`, its seconds ``aov_render_s``). All are
 scored against the stored 2048-spp ``reference.exr``: PSNR (tonemapped x/(1+x), gamma 1/2.2),
 relMSE (eps 0.01), FLIP (LDR), and denoise seconds. Scenes whose reference noise ceiling
 (``reference_psnr_ceiling_db``) is below ``--ceiling-db`` are reported but flagged and left out of
@@ -17,9 +20,10 @@ means and denoise times (seconds per megapixel) with OIDN's.
         [--out DIR] [--report-spp N]
 
 Writes DIR/evaluate.json, DIR/evaluate.md and DIR/evaluate.html (default DIR: benchmarks/results):
-the scoreboard page of the report viewer, every scene's noisy / ours / bare / OIDN / reference
-images at ``--report-spp`` (default: the lowest spp; about 1 MB per 256-px scene) with FLIP maps,
-and the tables. The full run (17 scenes, 3 spp, 256 px, four models) took 1.5 minutes on 2 cores.
+the scoreboard page of the report viewer, every scene's noisy / ours / bare / OIDN colour-only /
+OIDN + albedo + normal / reference images at ``--report-spp`` (default: the lowest spp; about 1 MB
+per 256-px scene) with FLIP maps, and the tables. The full run (17 scenes, 3 spp, 256 px, three
+models) took 32 minutes on 2 cores shared with other work (load 8-12; evaluate.json records it).
 """
 from __future__ import annotations
 
@@ -40,23 +44,25 @@ from denoise.flips import FLIPS
 from denoise.precision import PRECISIONS
 from denoise.denoiser import Denoiser
 from denoise.energy import settings_if
-from pipeline.evaluation import BARE, OIDN, evaluate
+from pipeline.evaluation import BARE, OIDN, OIDN_AUX, OIDN_LABELS, evaluate
 from pipeline.viewer import Page, Table, ViewerRow, ViewerSet, flip_map
 
 METRICS = ("psnr", "relmse", "flip")
 ENERGY_CHOICES = ("on", "off")  # --energy
-WHO = ("noisy", "ours", "ours_bare", "oidn")  # the columns of the per-scene table
+WHO = ("noisy", "ours", "ours_bare", OIDN, OIDN_AUX)  # the columns of the per-scene table
+LABELS = {"noisy": "noisy", "ours": "ours", "ours_bare": "bare", **OIDN_LABELS}
 PATH = ("render in two halves at the seed; ours: each model as render-and-denoise applies it (noise "
         "input, noise guard, energy correction); bare: the same network output before the guard; OIDN 2.5 "
-        "colour-only on the same render")
+        "on the same render, colour-only and with the albedo and normals of an AOV pass at the same spp and seed")
 
 
 def evaluate_scene(scene: EvalScene, spps: list[int], denoisers: dict[str, Denoiser],
                    keep: dict[str, np.ndarray] | None = None, keep_spp: int | None = None) -> dict[str, Any]:
     """Every spp of ``scene`` through :func:`pipeline.evaluation.evaluate`: the scores of the
-    render, each model (``models``) and its bare network (``bare``), and OIDN; the first model's
-    figures also as ``ours`` / ``ours_bare``. With ``keep``, the images at ``keep_spp`` (noisy,
-    ours, ours_bare, oidn) and the reference are put in it."""
+    render, each model (``models``) and its bare network (``bare``), and OIDN colour-only
+    (``oidn``) and with albedo and normals (``oidn_aux``); the first model's figures also as
+    ``ours`` / ``ours_bare``. With ``keep``, the images at ``keep_spp`` (noisy, ours, ours_bare,
+    oidn, oidn_aux) and the reference are put in it."""
     ref = scene.reference()
     settings = scene.settings(resolution=(ref.shape[1], ref.shape[0]))
     loaded = settings.load()
@@ -65,9 +71,10 @@ def evaluate_scene(scene: EvalScene, spps: list[int], denoisers: dict[str, Denoi
     for spp in spps:
         ev = evaluate(loaded, spp, settings, ref, denoisers, oidn=True, bare=True)
         s = ev.scores
-        entry = {"render_s": ev.render.seconds, "noisy": s["noisy"], "ours": s[first],
-                 "ours_bare": s[first + BARE], "oidn": s[OIDN], "ours_s": ev.outputs[first].seconds,
-                 "oidn_s": ev.outputs[OIDN].seconds,
+        entry = {"render_s": ev.render.seconds, "aov_render_s": ev.aov_seconds, "noisy": s["noisy"],
+                 "ours": s[first], "ours_bare": s[first + BARE], OIDN: s[OIDN], OIDN_AUX: s[OIDN_AUX],
+                 "ours_s": ev.outputs[first].seconds, "oidn_s": ev.outputs[OIDN].seconds,
+                 "oidn_aux_s": ev.outputs[OIDN_AUX].seconds,
                  "models": {name: {**s[name], "s": ev.outputs[name].seconds,
                                    "guard_weight": ev.outputs[name].result.guard_weight} for name in denoisers},
                  "bare": {name: s[name + BARE] for name in denoisers}}
@@ -76,8 +83,8 @@ def evaluate_scene(scene: EvalScene, spps: list[int], denoisers: dict[str, Denoi
             entry["noisy_psnr_recorded"] = recorded
         row[str(spp)] = entry
         if keep is not None and spp == keep_spp:
-            keep.update(noisy=ev.render.rgb, ours=ev.outputs[first].image,
-                        ours_bare=ev.outputs[first + BARE].image, oidn=ev.outputs[OIDN].image, reference=ref)
+            keep.update(noisy=ev.render.rgb, ours=ev.outputs[first].image, ours_bare=ev.outputs[first + BARE].image,
+                        oidn=ev.outputs[OIDN].image, oidn_aux=ev.outputs[OIDN_AUX].image, reference=ref)
     return row
 
 
@@ -87,12 +94,15 @@ def _mean(values: list[float]) -> float:
 
 
 def _summary(rows: dict[str, Any], names: list[str], key: str) -> dict[str, Any]:
-    """Means over ``names`` at spp ``key``: ``WHO_METRIC``, seconds, and per model (s/MP too)."""
+    """Means over ``names`` at spp ``key``: ``WHO_METRIC``, seconds (render, AOV pass, denoise),
+    and per model (s/MP too)."""
     entries = [rows[n][key] for n in names]
     mpix = [rows[n]["resolution"][0] * rows[n]["resolution"][1] / 1e6 for n in names]
     out: dict[str, Any] = {f"{who}_{m}": _mean([e[who][m] for e in entries]) for who in WHO for m in METRICS}
-    out.update(ours_s=_mean([e["ours_s"] for e in entries]), oidn_s=_mean([e["oidn_s"] for e in entries]),
-               oidn_s_per_mp=_mean([e["oidn_s"] / mp for e, mp in zip(entries, mpix)]))
+    out.update({f"{k}_s": _mean([e[f"{k}_s"] for e in entries])
+                for k in ("render", "aov_render", "ours", OIDN, OIDN_AUX)})
+    out.update({f"{who}_s_per_mp": _mean([e[f"{who}_s"] / mp for e, mp in zip(entries, mpix)])
+                for who in (OIDN, OIDN_AUX)})
     out["models"] = {model: {**{m: _mean([e["models"][model][m] for e in entries]) for m in METRICS},
                              "s_per_mp": _mean([e["models"][model]["s"] / mp for e, mp in zip(entries, mpix)]),
                              "bare": {m: _mean([e["bare"][model][m] for e in entries]) for m in METRICS}}
@@ -112,13 +122,16 @@ def summarize(rows: dict[str, Any], spps: list[int], ceiling_db: float) -> dict[
 def markdown(rows: dict[str, Any], summary: dict[str, Any], spps: list[int], ceiling_db: float,
              model: str) -> str:
     """The scoreboard as a markdown table (one row per scene and spp, then the means)."""
-    labels = ("noisy", "ours", "bare", "OIDN")
-    cols = [f"{who} {metric}" for metric in ("PSNR", "relMSE", "FLIP") for who in labels]
+    cols = [f"{LABELS[who]} {metric}" for metric in ("PSNR", "relMSE", "FLIP") for who in WHO]
+    seconds = [f"{LABELS[who]} s" for who in ("ours", OIDN, OIDN_AUX)] + ["AOV pass s"]
     lines = [f"Model `{model}`; PSNR dB (tonemapped) / relMSE / FLIP against the 2048-spp references; "
              f"ours = the default path (halves, noise input, guard, energy correction), bare = the network before the guard; "
+             f"{OIDN_LABELS[OIDN_AUX]}: with the albedo and normals of an AOV pass (its render seconds: AOV pass s); "
              f"* = reference ceiling below {ceiling_db:g} dB (not in the scored mean).", "",
-             "| scene | spp | " + " | ".join(cols) + " | ours s | OIDN s |",
-             "|---|---:|" + "---:|" * (len(cols) + 2)]
+             "| scene | spp | " + " | ".join(cols + seconds) + " |",
+             "|---|---:|" + "---:|" * (len(cols) + len(seconds))]
+
+    times = ("ours_s", "oidn_s", "oidn_aux_s", "aov_render_s")
 
     def cells(get: Any) -> str:
         return " | ".join(f"{get(who, m):.{2 if m == 'psnr' else 4 if m == 'relmse' else 3}f}"
@@ -129,13 +142,13 @@ def markdown(rows: dict[str, Any], summary: dict[str, Any], spps: list[int], cei
         for spp in spps:
             e = row[str(spp)]
             lines.append(f"| {name}{flag} | {spp} | {cells(lambda who, m: e[who][m])} | "
-                         f"{e['ours_s']:.2f} | {e['oidn_s']:.2f} |")
+                         + " | ".join(f"{e[k]:.2f}" for k in times) + " |")
     for subset in ("scored", "all"):
         for spp in spps:
             m = summary[subset][str(spp)]
             lines.append(f"| **mean, {subset} ({summary[subset]['scenes']})** | {spp} | "
-                         f"{cells(lambda who, metric: m[f'{who}_{metric}'])} | {m['ours_s']:.2f} | "
-                         f"{m['oidn_s']:.2f} |")
+                         f"{cells(lambda who, metric: m[f'{who}_{metric}'])} | "
+                         + " | ".join(f"{m[k]:.2f}" for k in times) + " |")
     return "\n".join(lines) + "\n"
 
 
@@ -144,14 +157,15 @@ def models_markdown(summary: dict[str, Any], spps: list[int]) -> str:
     with seconds per megapixel."""
     s = summary["scored"]
     lines = [f"Scored mean over {s['scenes']} scenes; PSNR dB / relMSE / FLIP; s/MP = denoise seconds "
-             "per megapixel (this run).", "",
+             f"per megapixel (this run; {OIDN_LABELS[OIDN_AUX]}'s AOV pass adds to the render).", "",
              "| denoiser | spp | PSNR | relMSE | FLIP | s/MP |", "|---|---:|---:|---:|---:|---:|"]
     for spp in spps:
         m = s[str(spp)]
         rows = [("noisy", {k: m[f"noisy_{k}"] for k in METRICS}, "-")]
         for name, e in m["models"].items():
             rows += [(name, e, f"{e['s_per_mp']:.2f}"), (f"{name} bare", e["bare"], "")]
-        rows.append(("OIDN", {k: m[f"oidn_{k}"] for k in METRICS}, f"{m['oidn_s_per_mp']:.2f}"))
+        rows += [(OIDN_LABELS[who], {k: m[f"{who}_{k}"] for k in METRICS}, f"{m[f'{who}_s_per_mp']:.2f}")
+                 for who in (OIDN, OIDN_AUX)]
         lines += [f"| {label} | {spp} | {e['psnr']:.2f} | {e['relmse']:.4f} | {e['flip']:.3f} | {t} |"
                   for label, e, t in rows]
     return "\n".join(lines) + "\n"
@@ -252,26 +266,25 @@ def write_results(out: Path, rows: dict[str, Any], images: dict[str, dict[str, n
 
 def scoreboard_page(result: dict[str, Any], images: dict[str, dict[str, np.ndarray]],
                     report_spp: int) -> Page:
-    """The scoreboard in the report viewer: one set per scene (noisy / ours / bare / OIDN /
-    reference at ``report_spp``, FLIP maps against the reference; n / p flip scenes), the scored
-    means, every scene's row and, with several models, their comparison. ``result``:
-    evaluate.json's dict; ``images``: scene -> {noisy, ours, ours_bare, oidn, reference} HxWx3
-    linear radiance."""
+    """The scoreboard in the report viewer: one set per scene (noisy / ours / bare / OIDN
+    colour-only / OIDN + albedo + normal / reference at ``report_spp``, FLIP maps against the
+    reference; n / p flip scenes), the scored means, every scene's row and, with several models,
+    their comparison. ``result``: evaluate.json's dict; ``images``: scene -> {noisy, ours,
+    ours_bare, oidn, oidn_aux, reference} HxWx3 linear radiance."""
     spps, ceiling = result["spp"], result["ceiling_db"]
     model = Path(result["model"]["path"]).name
     page = Page(f"Scoreboard: {len(result['scenes'])} evaluation scenes",
                 f"model {model}; images at {report_spp} spp (seed {result['seed']}) against the "
                 f"2048-spp references; {result['path']}; {result['machine']['cores']} cores, "
                 f"{result['wall_s']:.0f} s")
-    labels = {"noisy": "noisy", "ours": "ours", "ours_bare": "bare", "oidn": "OIDN"}
     for name, imgs in images.items():
         if not imgs:
             continue
         ref = page.radiance(imgs["reference"])
-        rows = [ViewerRow(label, page.radiance(imgs[key]), page.scalar(flip_map(imgs[key], imgs["reference"])))
-                for key, label in labels.items()]
+        rows = [ViewerRow(LABELS[key], page.radiance(imgs[key]), page.scalar(flip_map(imgs[key], imgs["reference"])))
+                for key in WHO]
         e = result["scenes"][name][str(report_spp)]
-        psnrs = " / ".join(f"{label} {e[who]['psnr']:.2f}" for who, label in labels.items())
+        psnrs = " / ".join(f"{LABELS[who]} {e[who]['psnr']:.2f}" for who in WHO)
         note = f"{report_spp} spp, PSNR {psnrs} dB"
         page.add_set(ViewerSet(name, [*rows, ViewerRow("reference", ref)], ref, note))
     cols = ["PSNR dB", "relMSE", "FLIP"]
@@ -279,20 +292,22 @@ def scoreboard_page(result: dict[str, Any], images: dict[str, dict[str, np.ndarr
     means = Table(["denoiser", "spp", *cols, "s"], better=better)
     for spp in spps:
         m = result["summary"]["scored"][str(spp)]
-        for who, label in (("noisy", "noisy"), ("ours", f"ours ({model})"), ("ours_bare", f"bare ({model})"),
-                           ("oidn", "OIDN")):
+        for who in WHO:
+            label = f"{LABELS[who]} ({model})" if who in ("ours", "ours_bare") else LABELS[who]
             means.rows.append([label, spp, m[f"{who}_psnr"], m[f"{who}_relmse"], m[f"{who}_flip"],
                                m.get(f"{who}_s")])
     page.add_section(f"Scored means ({result['summary']['scored']['scenes']} scenes, reference ceiling "
                      f">= {ceiling:g} dB)", means.html())
-    per_scene = Table(["scene", "spp", *(f"{labels[w]} PSNR" for w in WHO), "ours relMSE", "OIDN relMSE",
-                       "ours FLIP", "OIDN FLIP", "ours s", "OIDN s"])
+    compared = ("ours", OIDN, OIDN_AUX)
+    per_scene = Table(["scene", "spp", *(f"{LABELS[w]} PSNR" for w in WHO),
+                       *(f"{LABELS[w]} {metric}" for metric in ("relMSE", "FLIP") for w in compared),
+                       *(f"{LABELS[w]} s" for w in compared), "AOV pass s"])
     for name, row in result["scenes"].items():
         for spp in spps:
             e = row[str(spp)]
             per_scene.rows.append([name + ("*" if row["ceiling_db"] < ceiling else ""), spp,
-                                   *(e[w]["psnr"] for w in WHO), e["ours"]["relmse"], e["oidn"]["relmse"],
-                                   e["ours"]["flip"], e["oidn"]["flip"], e["ours_s"], e["oidn_s"]])
+                                   *(e[w]["psnr"] for w in WHO), *(e[w][m] for m in ("relmse", "flip") for w in compared),
+                                   *(e[f"{w}_s"] for w in compared), e["aov_render_s"]])
     page.add_section("Every scene", f"<p class='note'>* reference ceiling below {ceiling:g} dB (not in "
                      "the scored mean)</p>" + per_scene.html())
     if len(result["models"]) > 1:

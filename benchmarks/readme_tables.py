@@ -94,12 +94,21 @@ def _scoreboard_path(data: dict[str, Any]) -> str:
             "renders (no noise guard); `python -m benchmarks.evaluate` now scores the default path.")
 
 
+def _aux_time(scored: dict[str, Any], spps: Any) -> str:
+    """OIDN + albedo + normal's denoise seconds per megapixel over colour-only's in the scoreboard
+    run, at the spp where the ratio is largest."""
+    ratios = {s: scored[str(s)]["oidn_aux_s_per_mp"] / scored[str(s)]["oidn_s_per_mp"] for s in spps}
+    dearest = max(ratios, key=lambda s: ratios[s])
+    return f"{_f(ratios[dearest])}x at {dearest} spp"
+
+
 def models(results: Results) -> list[str]:
-    """The README's one table: each registry entry and OIDN, PSNR at the cards' spp, FLIP at 16 spp
-    and time over OIDN's (1280x720, each at its dearest spp, named)."""
+    """The README's one table: each registry entry and OIDN (colour-only, and with albedo and
+    normals), PSNR at the cards' spp, FLIP at 16 spp and time over OIDN colour-only's (1280x720,
+    each at its dearest spp, named; OIDN + albedo + normal's from the scoreboard run)."""
     from model.registry import CARD_SPP, registry
 
-    evaluate, inference = results.json("evaluate"), results.json("inference")
+    evaluate, inference, aov = results.json("evaluate"), results.json("inference"), results.json("aov_cost")
     scored = evaluate["summary"]["scored"]
     ratios = inference.get("ratios", {}).get("1280x720", {})
     rows = []
@@ -113,14 +122,26 @@ def models(results: Results) -> list[str]:
                      f"{_f(known[dearest])}x at {dearest} spp" if dearest else "-"])
     rows.append(["OIDN colour-only", *(_f(scored[str(s)]["oidn_psnr"]) for s in CARD_SPP),
                  _f(scored["16"]["oidn_flip"], 3), "1.00x"])
+    rows.append(["OIDN + albedo + normal", *(_f(scored[str(s)]["oidn_aux_psnr"]) for s in CARD_SPP),
+                 _f(scored["16"]["oidn_aux_flip"], 3), _aux_time(scored, CARD_SPP)])
+    pass_16 = aov["summary"]["16"]["pass_ratio"]
     header = ["model", *(f"PSNR {s} spp" for s in CARD_SPP), "FLIP 16 spp", "time / OIDN's"]
     return [*_table(header, rows), "",
             f"PSNR (dB, tonemapped) and FLIP: means over the {scored['scenes']} eval scenes with clean references "
             f"({len(evaluate['scenes'])} public Mitsuba scenes none of the models saw), `python -m benchmarks.evaluate`,",
             f"{evaluate.get('date', 'date not recorded')}. Time: one call on a 1280x720 render over OIDN's in the "
             f"same run, at the spp where the model costs most,",
-            f"`python -m benchmarks.inference`, {inference.get('date', 'date not recorded')}, {_load(inference)}. "
-            "Every model and scene: [evaluate](docs/evaluate.md)."]
+            f"`python -m benchmarks.inference`, {inference.get('date', 'date not recorded')}, {_load(inference)}.",
+            "OIDN + albedo + normal: its seconds over colour-only's in the scoreboard run (256 px); the albedo and normals "
+            "it takes, rendered in a pass of their own,",
+            f"add {_percent(pass_16['geomean'])} to the render time at 16 spp (geometric mean over {len(aov['scenes'])} "
+            f"eval scenes, {_percent(pass_16['min'])} to {_percent(pass_16['max'])}; `python -m benchmarks.aov_cost`, "
+            f"{aov.get('date', 'date not recorded')}). Every model and scene: [evaluate](docs/evaluate.md)."]
+
+
+def _percent(ratio: float) -> str:
+    """A time ratio as the share it adds: 1.07 -> '7%'."""
+    return f"{100 * (ratio - 1):.0f}%"
 
 
 def strip_caption(results: Results) -> list[str]:
@@ -187,6 +208,8 @@ def scoreboard(results: Results) -> list[str]:
                              _f(e["bare"]["relmse"], 4), _f(e["bare"]["flip"], 3), ""])
         rows.append(["OIDN 2.5 colour-only", str(spp), _f(m["oidn_psnr"]), _f(m["oidn_relmse"], 4),
                      _f(m["oidn_flip"], 3), _f(m["oidn_s_per_mp"])])
+        rows.append(["OIDN 2.5 + albedo + normal", str(spp), _f(m["oidn_aux_psnr"]), _f(m["oidn_aux_relmse"], 4),
+                     _f(m["oidn_aux_flip"], 3), _f(m["oidn_aux_s_per_mp"])])
     note = (f"Mean over the {s['scenes']} eval scenes whose reference ceiling is >= {data['ceiling_db']:g} dB, "
             f"seed {data['seed']}; PSNR dB (tonemapped), relMSE, FLIP against the 2048-spp references; "
             f"s/MP: denoise seconds per megapixel in this run. {_scoreboard_path(data)}")
@@ -198,21 +221,49 @@ def scoreboard_scenes(results: Results) -> list[str]:
     """Every scene and spp: PSNR of noisy / ours (/ bare) / OIDN, relMSE and FLIP of ours and OIDN."""
     data = results.json("evaluate")
     bare = any("ours_bare" in e for row in data["scenes"].values() for k, e in row.items() if k.isdigit())
-    who = ["noisy", "ours", *(["ours_bare"] if bare else []), "oidn"]
-    labels = {"noisy": "noisy", "ours": "ours", "ours_bare": "bare", "oidn": "OIDN"}
-    header = ["scene", "spp", *(f"{labels[w]} PSNR" for w in who), "ours relMSE",
-              "OIDN relMSE", "ours FLIP", "OIDN FLIP"]
+    who = ["noisy", "ours", *(["ours_bare"] if bare else []), "oidn", "oidn_aux"]
+    labels = {"noisy": "noisy", "ours": "ours", "ours_bare": "bare", "oidn": "OIDN colour-only",
+              "oidn_aux": "OIDN + albedo + normal"}
+    compared = ("ours", "oidn", "oidn_aux")
+    header = ["scene", "spp", *(f"{labels[w]} PSNR" for w in who),
+              *(f"{labels[w]} {m}" for m in ("relMSE", "FLIP") for w in compared)]
     rows = []
     for name, row in data["scenes"].items():
         flag = "*" if row["ceiling_db"] < data["ceiling_db"] else ""
         for spp in data["spp"]:
             e = row[str(spp)]
-            rows.append([name + flag, str(spp), *(_f(e[w]["psnr"]) for w in who), _f(e["ours"]["relmse"], 4),
-                         _f(e["oidn"]["relmse"], 4), _f(e["ours"]["flip"], 3), _f(e["oidn"]["flip"], 3)])
+            rows.append([name + flag, str(spp), *(_f(e[w]["psnr"]) for w in who),
+                         *(_f(e[w]["relmse"], 4) for w in compared), *(_f(e[w]["flip"], 3) for w in compared)])
     note = (f"Model `{Path(data['model']['path']).name}` (ours); * = reference ceiling below "
             f"{data['ceiling_db']:g} dB, not in the scored mean. {_scoreboard_path(data)}")
     return [caption("python -m benchmarks.evaluate", "benchmarks/results/evaluate.json", data, note), "",
             *_table(header, rows)]
+
+
+def aov_cost(results: Results) -> list[str]:
+    """What rendering the albedo and normals adds to the render time, per scene and spp: the AOV
+    pass the commands run, and the one render of radiance and AOVs together."""
+    data = results.json("aov_cost")
+    rows = []
+    for name, row in data["scenes"].items():
+        for spp in data["spp"]:
+            e = row[str(spp)]
+            s = e["seconds"]
+            same = "yes" if e["rgb_identical"] else f"no (up to {e['rgb_max_diff']:.1e})"
+            rows.append([name, str(spp), _f(s["plain"], 3), _f(s["pass"], 3), _f(s["wrapped"], 3),
+                         f"{_f(e['pass_ratio'])}x", f"{_f(e['wrapped_ratio'])}x", same])
+    for spp in data["spp"]:
+        m = data["summary"][str(spp)]
+        rows.append(["geometric mean", str(spp), "", "", "", f"{_f(m['pass_ratio']['geomean'])}x",
+                     f"{_f(m['wrapped_ratio']['geomean'])}x", ""])
+    w, h = data["resolution"]
+    note = (f"{w}x{h}, seed {data['seed']}, two halves as render-and-denoise renders; medians of {data['repeat']} "
+            "rounds after each kernel is compiled. plain: the render the models get; pass: the AOV pass the "
+            "commands add for OIDN + albedo + normal (Mitsuba's aov integrator alone, the same camera rays); "
+            "wrapped: one render of radiance and AOVs (the scene's integrator inside the aov integrator).")
+    return [caption("python -m benchmarks.aov_cost", "benchmarks/results/aov_cost.json", data, note), "",
+            *_table(["scene", "spp", "plain s", "pass s", "wrapped s", "(plain + pass) / plain",
+                     "wrapped / plain", "wrapped radiance = plain"], rows)]
 
 
 def noise_guard_settings(results: Results) -> list[str]:
@@ -620,7 +671,7 @@ def mutation(results: Results) -> list[str]:
 
 
 TABLES: dict[str, Callable[[Results], list[str]]] = {
-    f.__name__: f for f in (models, strip_caption, unknown_spp, image_noise, denoise_process, scoreboard, scoreboard_scenes, noise_guard, noise_guard_settings, energy, ensemble, inference,
+    f.__name__: f for f in (models, strip_caption, unknown_spp, image_noise, denoise_process, scoreboard, scoreboard_scenes, aov_cost, noise_guard, noise_guard_settings, energy, ensemble, inference,
                             multiscale_presets, roofline, budget, presets, recipe_runs, validation, val_scenes, trend, ablations,
                             train_throughput, scaleout, extremes, render_memory, denoise_memory, denoise_tile_memory,
                             fuzz, mutation)}

@@ -124,8 +124,8 @@ def render_parser() -> OneLineParser:
     add_model_argument(p)
     compare = p.add_mutually_exclusive_group()
     compare.add_argument("--compare", choices=["oidn"], action="append", default=[],
-                         help="denoise with OIDN colour-only too, and fail without pyoidn (default: "
-                         "compare whenever pyoidn is installed)")
+                         help="denoise with OIDN too, colour-only and with albedo and normals (rendered "
+                         "for it), and fail without pyoidn (default: compare whenever pyoidn is installed)")
     compare.add_argument("--no-compare", action="store_true", help="do not run OIDN")
     p.add_argument("--out", help="output folder (default: the scene's name): created, or an existing folder "
                    "holding none of this command's files (else --overwrite)")
@@ -188,7 +188,8 @@ def denoise_parser() -> OneLineParser:
     p.add_argument("--no-noise-guard", action="store_true",
                    help="ignore the variance: keep the denoiser's output as it is")
     add_model_argument(p)
-    p.add_argument("--reference", help="reference image: print metrics")
+    p.add_argument("--reference", help="reference image: print metrics, OIDN's too when pyoidn is installed "
+                   "(colour-only, and with albedo and normals where the EXR has those layers)")
     p.add_argument("--max-memory-mb", type=float, default=DEFAULT_MAX_MEMORY_MB, help="tile memory bound")
     p.add_argument("--skip-below", type=positive_float, metavar="NOISE", help=SKIP_HELP)
     p.add_argument("--precision", choices=PRECISIONS, default="auto", help=PRECISION_HELP)
@@ -242,8 +243,8 @@ def tradeoff_parser() -> OneLineParser:
     p.formatter_class = argparse.RawDescriptionHelpFormatter
     compare = p.add_mutually_exclusive_group()
     compare.add_argument("--compare", choices=["oidn"], action="append", default=[],
-                         help="measure OIDN colour-only too, and fail without pyoidn (default: whenever "
-                         "pyoidn is installed)")
+                         help="measure OIDN colour-only and OIDN + albedo + normal too, and fail without "
+                         "pyoidn (default: whenever pyoidn is installed)")
     compare.add_argument("--no-compare", action="store_true", help="do not run OIDN")
     p.add_argument("--repeat", type=positive_int, default=3, help="timing repeats, median kept (3)")
     p.add_argument("--metric", choices=["relmse", "psnr", "flip"], default="relmse",

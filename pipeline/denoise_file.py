@@ -9,7 +9,8 @@ denoiser, which applies the noise guard with it. The output replaces the colour 
 and keeps every other layer, part and attribute (``rgb_only``: a plain RGB EXR); a ``.pfm``,
 ``.hdr`` or ``.png`` (tonemapped) output path writes that format instead, any other extension is
 refused, and so is an output that is one of the inputs or, unless ``overwrite``, a file that exists
-(:mod:`imaging.output_paths`).
+(:mod:`imaging.output_paths`). With a reference, the metrics cover OIDN on the same input too (when
+pyoidn is installed): colour-only and, where the file has albedo and normal layers, OIDN + albedo + normal.
 """
 from __future__ import annotations
 
@@ -35,8 +36,9 @@ from rendering.render import half_variance
 from denoise.denoiser import Denoiser
 from denoise.energy import settings_if
 from denoise.noise_guard import DEFAULT_STRENGTH, strength_for
+from denoise.oidn import oidn_available, oidn_denoise
 from model.registry import AUTO
-from pipeline.evaluation import quality_lines
+from pipeline.evaluation import OIDN, OIDN_AUX, quality_lines
 
 HALVES_BYTES_PER_PIXEL = 128  # combine_halves: float64 temporaries of the mean and the variance
 OUTPUT_BYTES_PER_PIXEL = 12  # the denoised image, HxWx3 float32
@@ -144,6 +146,18 @@ def combine_halves(a: InputImage, b: InputImage, max_bytes: float = 64 * 2**20) 
     return InputImage(a.path, mean, a.exr, a.layer, a.albedo, a.normals, variance, "halves", spp)
 
 
+def oidn_quality(image: InputImage, reference: np.ndarray) -> dict[str, dict[str, float]]:
+    """Every metric of OIDN on ``image`` against ``reference``: colour-only (``oidn``) and, where
+    the file has albedo and normal layers, OIDN + albedo + normal (``oidn_aux``); nothing without
+    pyoidn."""
+    if not oidn_available():
+        return {}
+    quality = {OIDN: all_metrics(oidn_denoise(image.rgb)[0], reference)}
+    if image.albedo is not None and image.normals is not None:
+        quality[OIDN_AUX] = all_metrics(oidn_denoise(image.rgb, image.albedo, image.normals)[0], reference)
+    return quality
+
+
 def _write(cfg: DenoiseFileConfig, image: InputImage, result: np.ndarray, model: str, max_bytes: float) -> str:
     """Write the output in the format its extension names; return the layout written."""
     attributes = {"denoised_by": model, "source": Path(image.path).name}
@@ -211,7 +225,8 @@ def denoise_file(cfg: DenoiseFileConfig) -> dict[str, Any]:
             "mean_weight": result.guard_weight},
         "energy": result.energy_record()}
     if ref is not None:
-        out["quality"] = {"noisy": all_metrics(image.rgb, ref), "denoised": all_metrics(result.image, ref)}
+        out["quality"] = {"noisy": all_metrics(image.rgb, ref), "denoised": all_metrics(result.image, ref),
+                          **oidn_quality(image, ref)}
     return json_safe(out)
 
 

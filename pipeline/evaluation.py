@@ -9,8 +9,15 @@ scoreboard measures exactly what users get:
   made of two halves of independent samples; their difference is the variance estimate that feeds
   a model's noise input and the guard. Off: one piece, no variance.
 * :func:`denoise_output`: one model through :meth:`Denoiser.denoise_render` (its AOVs, noise input
-  and the guard at the strength for the render's spp), or OIDN colour-only on the same render;
-  with ``keep_network`` the bare network's output (the same forward pass, before the guard) too.
+  and the guard at the strength for the render's spp), or OIDN on the same render, colour-only and
+  with the render's albedo and normals (:func:`oidn_output`); with ``keep_network`` the bare
+  network's output (the same forward pass, before the guard) too.
+* :func:`with_aovs`: the albedo and normals OIDN + albedo + normal takes, for a render made
+  without them (our shipped models take none). They come from a pass of Mitsuba's aov integrator
+  alone on the same loaded scene, with the render's spp, seed and halves: the same camera rays.
+  The render our models see is the one they saw without it, bit for bit; wrapping the scene's
+  integrator in the aov integrator instead changes a volpath scene's radiance by float rounding,
+  and costs more render time (``benchmarks/aov_cost.py``).
 * :func:`score`: PSNR (tonemapped), relMSE and FLIP against the reference (:mod:`imaging.metrics`).
 
 :func:`evaluate` chains the three for one scene, spp and seed.
@@ -18,7 +25,7 @@ scoreboard measures exactly what users get:
 from __future__ import annotations
 
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -29,14 +36,16 @@ from imaging.exr import read_exr
 from imaging.output_paths import check_not_inputs
 from imaging.metrics import all_metrics, flip, psnr, relmse
 from rendering.render import (DEFAULT_MAX_MEMORY_MB, Progress, RenderResult, check_render_memory, load_scene,
-                              pass_seeds, prepare, render_loaded)
+                              pass_seeds, prepare, render_aovs, render_loaded)
 from rendering.render_crops import film_window
 from denoise.denoiser import DenoiseResult, Denoiser
 from denoise.energy import settings_if
 from denoise.oidn import oidn_denoise
 
-AOVS = ("albedo", "sh_normal")  # what a model with auxiliary inputs needs rendered
-OIDN = "oidn"
+AOVS = ("albedo", "sh_normal")  # what a model with auxiliary inputs, and OIDN's, need rendered
+OIDN = "oidn"  # OIDN colour-only
+OIDN_AUX = "oidn_aux"  # OIDN + albedo + normal
+OIDN_LABELS = {OIDN: "OIDN colour-only", OIDN_AUX: "OIDN + albedo + normal"}
 BARE = " bare"  # suffix of a model's bare network output in :func:`denoise_outputs`
 
 
@@ -119,6 +128,18 @@ def render_input(scene: Any, spp: int, settings: RenderSettings, aovs: Sequence[
                          max_memory_mb=settings.max_memory_mb, progress=progress)
 
 
+def with_aovs(render: RenderResult, scene: Any, settings: RenderSettings) -> tuple[RenderResult, float]:
+    """``render`` (the same ``rgb`` array) with :data:`AOVS`, and the seconds their pass took (0:
+    the render had them). The pass renders ``scene`` (the one loaded scene that made ``render``)
+    at the render's spp, the settings' seed and halves with Mitsuba's aov integrator alone
+    (:func:`rendering.render.render_aovs`): the camera rays of the render, no light transport."""
+    if all(name in render.aovs for name in AOVS):
+        return render, 0.0
+    aovs = render_aovs(scene, render.spp, settings.seed, AOVS, halves=settings.noise_guard,
+                       max_memory_mb=settings.max_memory_mb)
+    return replace(render, aovs={**render.aovs, **aovs.aovs}), aovs.seconds
+
+
 def read_reference(settings: RenderSettings) -> np.ndarray | None:
     """The reference EXR's HxWx3 radiance (read before rendering, so a bad file fails early), or
     None when there is none or it is to be rendered (:func:`render_reference`)."""
@@ -151,12 +172,20 @@ class Output:
     result: DenoiseResult | None = None
 
 
+def oidn_output(render: RenderResult, aux: bool = False) -> Output:
+    """OIDN on ``render`` (the anchor, as it comes: no guard): colour-only, or with ``aux`` its
+    albedo and normals as OIDN's auxiliary images (:func:`with_aovs`)."""
+    if not aux:
+        return Output(*oidn_denoise(render.rgb))
+    return Output(*oidn_denoise(render.rgb, render.aovs["albedo"], render.aovs["sh_normal"]))
+
+
 def denoise_output(render: RenderResult, denoiser: Denoiser | None, keep_network: bool = False) -> Output:
     """``denoiser`` applied to ``render`` as ``render-and-denoise`` applies it; None: OIDN
-    colour-only (the anchor, as it comes: no guard). ``keep_network``: keep the bare network's
-    output in ``result.network``."""
+    colour-only (:func:`oidn_output`). ``keep_network``: keep the bare network's output in
+    ``result.network``."""
     if denoiser is None:
-        return Output(*oidn_denoise(render.rgb))
+        return oidn_output(render)
     result = denoiser.denoise_render(render, keep_network)
     return Output(result.image, result.seconds, result)
 
@@ -165,7 +194,8 @@ def denoise_outputs(render: RenderResult, denoisers: Mapping[str, Denoiser], oid
                     bare: bool = False) -> dict[str, Output]:
     """Every model's :func:`denoise_output` under its name; with ``bare`` also its bare network
     output (``NAME bare``, the same forward pass: the seconds are the model's); with ``oidn``,
-    OIDN's under ``oidn``."""
+    OIDN colour-only under :data:`OIDN` and, when the render has :data:`AOVS`, OIDN + albedo +
+    normal under :data:`OIDN_AUX`."""
     outputs: dict[str, Output] = {}
     for name, denoiser in denoisers.items():
         output = outputs[name] = denoise_output(render, denoiser, keep_network=bare)
@@ -173,7 +203,9 @@ def denoise_outputs(render: RenderResult, denoisers: Mapping[str, Denoiser], oid
             assert output.result is not None and output.result.network is not None
             outputs[name + BARE] = Output(output.result.network, output.seconds)
     if oidn:
-        outputs[OIDN] = denoise_output(render, None)
+        outputs[OIDN] = oidn_output(render)
+        if all(name in render.aovs for name in AOVS):
+            outputs[OIDN_AUX] = oidn_output(render, aux=True)
     return outputs
 
 
@@ -187,25 +219,31 @@ def score(image: np.ndarray, reference: np.ndarray, full: bool = False) -> dict[
 
 @dataclass
 class Evaluation:
-    """One scene at one spp: the render, each denoiser's output and the scores of ``noisy`` (the
-    render) and of every output."""
+    """One scene at one spp: the render (with OIDN, its AOVs too), each denoiser's output and the
+    scores of ``noisy`` (the render) and of every output; ``aov_seconds``: the AOV pass's time
+    (:func:`with_aovs`; None without OIDN)."""
 
     render: RenderResult
     outputs: dict[str, Output]
     scores: dict[str, dict[str, float]]
+    aov_seconds: float | None = None
 
 
 def evaluate(scene: Any, spp: int, settings: RenderSettings, reference: np.ndarray,
              denoisers: Mapping[str, Denoiser], oidn: bool = True, bare: bool = False,
              aovs: Sequence[str] = ()) -> Evaluation:
-    """Render ``scene`` at ``spp`` as :func:`render_input` does, denoise it with every model (and
-    OIDN) as :func:`denoise_outputs` does, and score everything against ``reference``."""
+    """Render ``scene`` at ``spp`` as :func:`render_input` does, denoise it with every model (and,
+    with ``oidn``, OIDN colour-only and, its AOVs added by :func:`with_aovs`, OIDN + albedo +
+    normal) as :func:`denoise_outputs` does, and score everything against ``reference``."""
     render = render_input(scene, spp, settings, aovs)
     check_reference(settings, reference, render)
+    aov_seconds = None
+    if oidn:
+        render, aov_seconds = with_aovs(render, scene, settings)
     outputs = denoise_outputs(render, denoisers, oidn, bare)
     scores = {"noisy": score(render.rgb, reference)}
     scores.update({name: score(output.image, reference) for name, output in outputs.items()})
-    return Evaluation(render, outputs, scores)
+    return Evaluation(render, outputs, scores, aov_seconds)
 
 
 def quality_lines(quality: Mapping[str, Mapping[str, Any]]) -> list[str]:

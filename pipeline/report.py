@@ -1,7 +1,8 @@
 """Person-readable outputs of a denoising run: report.html (the interactive viewer of
 :mod:`pipeline.viewer` with the metrics, timings and settings), comparison PNG with zoomed crops.
 
-The comparison shows the images side by side (noisy | ours | OIDN | reference) and below them
+The comparison shows the images side by side (noisy | ours | OIDN colour-only | OIDN + albedo +
+normal | reference, each labelled with its file name) and below them
 zoomed crops of the regions where our result has the largest error against the reference (or,
 without a reference, where it differs most from the noisy input). It is made and written a band
 of rows at a time (:func:`write_comparison`), the file the whole sheet gives: the sheet is never
@@ -22,6 +23,7 @@ from PIL import Image, ImageDraw, ImageFont
 from imaging.blocks import DEFAULT_BLOCK_BYTES, row_blocks
 from imaging.metrics import tonemap
 from imaging.png import DISPLAY_BYTES_PER_VALUE, FILTER_BYTES_PER_VALUE, save_png, to_display, write_png_bands
+from pipeline.evaluation import OIDN, OIDN_AUX, OIDN_LABELS
 from pipeline.viewer import Page, Table, ViewerRow, ViewerSet, details, flip_map
 
 LABEL_H = 16
@@ -177,18 +179,19 @@ def write_comparison(path: Path, images: dict[str, np.ndarray], focus: str, agai
     return path
 
 
-LABELS = {"noisy": "noisy", "denoised": "ours", "oidn": "OIDN", "reference": "reference"}
+LABELS = {"noisy": "noisy", "denoised": "ours", **OIDN_LABELS, "reference": "reference"}
 METRIC_COLUMNS = [("psnr", "PSNR dB", "high"), ("ssim", "SSIM", "high"), ("relmse", "relMSE", "low"),
                   ("smape", "SMAPE", "low"), ("flip", "FLIP", "low"), ("hdr_flip", "HDR-FLIP", "low")]
 
 
 def run_page(metrics: dict[str, Any], images: dict[str, np.ndarray],
              guard_map: np.ndarray | None = None, max_bytes: float = DEFAULT_BLOCK_BYTES) -> Page:
-    """The report of one render-and-denoise run: the viewer over noisy / ours / OIDN / reference
-    (+ FLIP maps against the reference, + the noise guard's weight map), the metrics table, the
-    run's timings, model and settings. ``images``: name -> HxWx3 linear radiance, names as in
-    :data:`LABELS`; ``metrics``: the run's metrics.json dict. Images are embedded a block of rows
-    at a time within ``max_bytes``; the FLIP maps are computed on whole images."""
+    """The report of one render-and-denoise run: the viewer over noisy / ours / OIDN colour-only /
+    OIDN + albedo + normal / reference (+ FLIP maps against the reference, + the noise guard's
+    weight map), the metrics table, the run's timings, model and settings. ``images``: name ->
+    HxWx3 linear radiance, names as in :data:`LABELS`; ``metrics``: the run's metrics.json dict.
+    Images are embedded a block of rows at a time within ``max_bytes``; the FLIP maps are computed
+    on whole images."""
     w, h = metrics["resolution"]
     model = metrics["model"]
     page = Page(f"{Path(str(metrics['scene'])).name}: denoising report",
@@ -213,7 +216,8 @@ def run_page(metrics: dict[str, Any], images: dict[str, np.ndarray],
 
 def _quality_section(page: Page, metrics: dict[str, Any]) -> None:
     quality, timings = metrics.get("quality"), metrics["timings"]
-    seconds = {"denoised": timings.get("denoise_s"), "oidn": timings.get("oidn_s")}
+    seconds = {"denoised": timings.get("denoise_s"), OIDN: timings.get("oidn_s"),
+               OIDN_AUX: timings.get("oidn_aux_s")}
     note = f"<p class='note'>{html.escape(str(metrics.get('note', '')))}. {html.escape(_oidn_note(metrics))}</p>"
     if not quality:
         stats = metrics.get("stats", {})

@@ -1,10 +1,11 @@
 """``render-and-denoise``'s core: render a scene, denoise it, compare, write files and a report.
 
-Outputs in ``out``: noisy.exr, denoised.exr (+ oidn.exr, reference.exr), a PNG preview of each,
-comparison.png, metrics.json (written last: a run without it did not finish), report.html and
-config.json (the run's settings). A folder already holding one of these files is refused before
-anything runs (:func:`imaging.output_paths.check_output_folder`) unless ``overwrite``; a run with
-it deletes the earlier run's metrics.json and report.html first, and replaces each file it writes.
+Outputs in ``out``: noisy.exr, denoised.exr (+ oidn.exr and oidn_aux.exr: OIDN colour-only and
+OIDN + albedo + normal; reference.exr), a PNG preview of each, comparison.png, metrics.json
+(written last: a run without it did not finish), report.html and config.json (the run's settings).
+A folder already holding one of these files is refused before anything runs
+(:func:`imaging.output_paths.check_output_folder`) unless ``overwrite``; a run with it deletes the
+earlier run's metrics.json and report.html first, and replaces each file it writes.
 Writing them, the metrics and the report go a block of rows at a time (:func:`output_bytes` of
 the ``--max-memory-mb`` budget), so their scratch memory does not grow with the image.
 """
@@ -31,9 +32,9 @@ from rendering.render import RenderResult
 from pipeline.budget import BudgetPlan, Candidate, after_render, budget_candidates, plan_run, refit_spp
 from pipeline.budget_costs import read_costs
 from denoise.denoiser import DenoiseResult, Denoiser
-from pipeline.evaluation import (RenderSettings, aovs_for, check_memory, check_reference, denoise_output,
-                                 make_denoiser, quality_lines, read_reference, render_input, render_reference,
-                                 score)
+from pipeline.evaluation import (OIDN, OIDN_AUX, RenderSettings, aovs_for, check_memory, check_reference,
+                                 denoise_output, make_denoiser, oidn_output, quality_lines, read_reference,
+                                 render_input, render_reference, score, with_aovs)
 from denoise.noise_guard import DEFAULT_PIVOT_SPP, DEFAULT_RADIUS, strength_for
 from denoise.oidn import oidn_available
 from model.registry import AUTO
@@ -73,7 +74,8 @@ def output_bytes(cfg: RenderSettings) -> float:
 # every file of a run in its output folder; with the writability probe, every file run() writes into
 # (or removes from) it
 RESULT_NAMES = ("config.json", "metrics.json", "report.html", "comparison.png",
-                *(f"{image}.{ext}" for image in ("noisy", "denoised", "oidn", "reference") for ext in ("exr", "png")))
+                *(f"{image}.{ext}" for image in ("noisy", "denoised", OIDN, OIDN_AUX, "reference")
+                  for ext in ("exr", "png")))
 OUTPUT_NAMES = (*RESULT_NAMES, ".write-test")
 
 
@@ -104,7 +106,8 @@ def _oidn_setting(compare: bool | None) -> dict[str, Any]:
     if compare is None and not oidn_available():
         return {"compared": False, "note": "OIDN not compared: pyoidn is not installed "
                 "(pip install '.[oidn]')"}
-    return {"compared": True, "note": "OIDN: Intel Open Image Denoise, colour only (pyoidn)"}
+    return {"compared": True, "note": "OIDN: Intel Open Image Denoise (pyoidn), colour-only and with the "
+            "render's albedo and normals (from an AOV pass with the render's camera rays)"}
 
 
 @dataclass
@@ -210,12 +213,17 @@ def _render_and_denoise(run: _Run) -> None:
 
 
 def _compare(run: _Run) -> None:
-    """OIDN on the same render, and the reference (read, or rendered now)."""
+    """OIDN on the same render (colour-only, then with the render's albedo and normals, rendered
+    now unless the render has them), and the reference (read, or rendered now)."""
     run.oidn = _oidn_setting(run.cfg.compare_oidn)
     if run.oidn["compared"]:
-        run.log("denoising with OIDN")
-        oidn = denoise_output(run.noisy, None)
-        run.images["oidn"], run.timings["oidn_s"] = oidn.image, oidn.seconds
+        run.log("denoising with OIDN colour-only")
+        oidn = oidn_output(run.noisy)
+        run.images[OIDN], run.timings["oidn_s"] = oidn.image, oidn.seconds
+        run.log("rendering albedo and normals; denoising with OIDN + albedo + normal")
+        render, run.timings["aov_render_s"] = with_aovs(run.noisy, run.scene, run.cfg.render)
+        aux = oidn_output(render, aux=True)
+        run.images[OIDN_AUX], run.timings["oidn_aux_s"] = aux.image, aux.seconds
     if run.cfg.render.reference_spp:
         run.log(f"rendering the reference at {run.cfg.render.reference_spp} spp")
         ref = render_reference(run.cfg.render, run.scene, run.aovs, counted(run.bars, "reference"))

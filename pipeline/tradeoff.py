@@ -2,13 +2,16 @@
 
 For every spp the scene is rendered ``repeat`` times with the same seed (the same image; the
 median wall time is kept), then each denoiser — ``none`` (the raw render), each model, OIDN if
-asked — runs ``repeat`` times on it (median time). Renders, denoisers and scores are those of
-``render-and-denoise`` (:mod:`pipeline.evaluation`: two halves, noise input and guard unless
-``--no-noise-guard``; PSNR, relMSE, FLIP). Kernels are compiled and the networks warmed up
-before anything is timed. Outputs (:mod:`pipeline.tradeoff_report`): ``tradeoff.json``,
-``tradeoff.csv``, ``tradeoff.png``, ``report.html`` and ``config.json`` (this run's
-:class:`TradeoffConfig`). A folder already holding one of them is refused before anything runs
-(:func:`imaging.output_paths.check_output_folder`) unless ``overwrite``.
+asked — runs ``repeat`` times on it (median time). OIDN comes twice: colour-only (``oidn``) and
+with the render's albedo and normals (``oidn_aux``), whose render time includes their AOV pass
+(:func:`pipeline.evaluation.with_aovs`, ``repeat`` times with the render, median of the sums).
+Renders, denoisers and scores are those of ``render-and-denoise`` (:mod:`pipeline.evaluation`: two
+halves, noise input and guard unless ``--no-noise-guard``; PSNR, relMSE, FLIP). Kernels are
+compiled and the networks warmed up before anything is timed. Outputs
+(:mod:`pipeline.tradeoff_report`): ``tradeoff.json``, ``tradeoff.csv``, ``tradeoff.png``,
+``report.html`` and ``config.json`` (this run's :class:`TradeoffConfig`). A folder already holding
+one of them is refused before anything runs (:func:`imaging.output_paths.check_output_folder`)
+unless ``overwrite``.
 """
 from __future__ import annotations
 
@@ -19,6 +22,8 @@ from importlib import metadata
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from imaging.atomic_io import json_safe, write_json_atomic
 from imaging.errors import DenoiserError
 from imaging.output_paths import check_output_folder
@@ -27,8 +32,9 @@ from rendering.render import RenderResult
 from denoise.denoiser import Denoiser, select
 from denoise.oidn import oidn_available
 from model.registry import SEPARATOR, range_suffix, registry
-from pipeline.evaluation import (OIDN, Output, RenderSettings, aovs_for, check_memory, check_reference, denoise_output,
-                                 make_denoiser, read_reference, render_input, render_reference, score)
+from pipeline.evaluation import (OIDN, OIDN_AUX, Output, RenderSettings, aovs_for, check_memory, check_reference,
+                                 denoise_output, make_denoiser, oidn_output, read_reference, render_input,
+                                 render_reference, score, with_aovs)
 from pipeline.pareto import ERROR_OF_METRIC, equal_quality, metric_error, pareto_front
 
 DEFAULT_SPP = (1, 2, 4, 8, 16, 32, 64, 128, 256, 512, 1024)
@@ -41,7 +47,8 @@ class TradeoffConfig:
     """Settings of one ``tradeoff`` run (filled by the CLI, saved as config.json).
 
     ``models``: registry names (:mod:`model.registry`), checkpoint files or expert specs.
-    ``compare_oidn``: also measure OIDN colour-only (None: whenever pyoidn is installed).
+    ``compare_oidn``: also measure OIDN colour-only and OIDN + albedo + normal (None: whenever
+    pyoidn is installed).
     ``metric``: the error that the plot, the Pareto front and the printed saving table use.
     """
 
@@ -98,7 +105,7 @@ def model_labels(models: list[str]) -> dict[str, str]:
         else:
             label = SEPARATOR.join(m.path.stem + range_suffix(m.lo, m.hi) for m in selection.choices[0].by_spp)
         base, n = label, 2
-        while label in labels or label in ("none", "oidn"):
+        while label in labels or label in ("none", OIDN, OIDN_AUX):
             label, n = f"{base}-{n}", n + 1
         labels[label] = name
     return labels
@@ -121,11 +128,25 @@ def _timed(render: RenderResult, denoiser: Denoiser | None, repeat: int) -> tupl
 
 def _warm_up(scene: Any, settings: RenderSettings, aovs: tuple[str, ...],
              denoisers: dict[str, Denoiser | None]) -> None:
-    """Compile the render kernels (power-of-two and other spp differ) and touch every denoiser."""
-    first = render_input(scene, 1, settings, aovs)
-    render_input(scene, 3, settings, aovs)
+    """Compile the render kernels (power-of-two and other spp differ; the AOV pass's too, with
+    OIDN) and touch every denoiser."""
+    first, third = render_input(scene, 1, settings, aovs), render_input(scene, 3, settings, aovs)
     for denoiser in denoisers.values():
         denoise_output(first, denoiser)
+    if OIDN in denoisers:
+        with_aovs(third, scene, settings)
+        oidn_output(with_aovs(first, scene, settings)[0], aux=True)
+
+
+def _oidn_aux_point(scene: Any, settings: RenderSettings, noisy: RenderResult, render_times: list[float],
+                    repeat: int, reference: np.ndarray) -> Point:
+    """OIDN + albedo + normal on ``noisy``: each of the ``repeat`` render times plus an AOV pass's."""
+    passes = [with_aovs(noisy, scene, settings) for _ in range(repeat)]
+    outputs = [oidn_output(passes[-1][0], aux=True) for _ in range(repeat)]
+    times = [o.seconds for o in outputs]
+    with_pass = [r + seconds for r, (_, seconds) in zip(render_times, passes)]
+    return Point(OIDN_AUX, noisy.spp, _median(with_pass), _median(times), **score(outputs[-1].image, reference),
+                 render_times=with_pass, denoise_times=times)
 
 
 def measure(cfg: TradeoffConfig, progress: ProgressFactory | None = None) -> dict[str, Any]:
@@ -142,7 +163,7 @@ def measure(cfg: TradeoffConfig, progress: ProgressFactory | None = None) -> dic
     oidn = oidn_available() if cfg.compare_oidn is None else cfg.compare_oidn
     denoisers: dict[str, Denoiser | None] = {**models, **({OIDN: None} if oidn else {})}
     spps = sorted(cfg.spp)
-    bar = progress(len(spps) * (1 + len(denoisers)) + 1) if progress else None
+    bar = progress(len(spps) * (1 + len(denoisers) + int(oidn)) + 1) if progress else None
     _warm_up(scene, settings, aovs, denoisers)
     ref_info: dict[str, Any] = {"file": settings.reference}
     if settings.reference_spp:
@@ -169,6 +190,10 @@ def measure(cfg: TradeoffConfig, progress: ProgressFactory | None = None) -> dic
             points.append(Point(name, spp, _median(render_times), _median(times),
                                 **score(output.image, reference), render_times=render_times,
                                 denoise_times=times))
+            _advance(bar)
+        if oidn:
+            _describe(bar, f"{spp} spp: {OIDN_AUX}")
+            points.append(_oidn_aux_point(scene, settings, noisy, render_times, cfg.repeat, reference))
             _advance(bar)
     if bar:
         bar.close()

@@ -3,6 +3,8 @@ HTML report (:mod:`pipeline.viewer`'s page: plot and tables).
 
 All read the result dict of :func:`pipeline.tradeoff.measure` (seconds, metric values as
 :mod:`imaging.metrics` computes them; the plotted error is :func:`pipeline.pareto.metric_error`).
+The plot and the page name OIDN's two entries (``oidn``, ``oidn_aux`` in the CSV, the JSON and the
+printed table) "OIDN colour-only" and "OIDN + albedo + normal".
 """
 from __future__ import annotations
 
@@ -13,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from imaging.atomic_io import write_text_atomic
+from pipeline.evaluation import OIDN_LABELS
 from pipeline.pareto import ERROR_LABEL, metric_error
 from pipeline.viewer import Page, Table, details, png_figure
 
@@ -60,7 +63,7 @@ def plot_tradeoff(path: Path, result: dict[str, Any]) -> None:
             continue
         style = dict(color="0.45", linestyle=":") if name == "none" else {}
         ax.plot([v[0] for v in xy], [v[1] for v in xy], marker="o", ms=4,
-                label="raw render" if name == "none" else name, **style)
+                label="raw render" if name == "none" else OIDN_LABELS.get(name, name), **style)
         if name == "none":
             for x, y, s in xy:
                 ax.annotate(f"{s}", (x, y), textcoords="offset points", xytext=(3, 3), fontsize=7,
@@ -158,8 +161,9 @@ def tradeoff_page(result: dict[str, Any], plot_png: bytes) -> Page:
                    better={"saving x": "high"})
     for eq in _equal_rows(result).values():
         raw = f"~{eq['raw_spp']:.0f}" if eq["extrapolated"] and eq["raw_spp"] is not None else eq["raw_spp"]
-        saving.rows.append([eq["denoiser"], eq["spp"], points[(eq["denoiser"], eq["spp"])]["total_s"],
-                            points[(eq["denoiser"], eq["spp"])][metric], raw, eq["raw_s"], eq["saving"]])
+        point = points[(eq["denoiser"], eq["spp"])]
+        saving.rows.append([OIDN_LABELS.get(eq["denoiser"], eq["denoiser"]), eq["spp"], point["total_s"],
+                            point[metric], raw, eq["raw_s"], eq["saving"]])
     page.add_section(f"Equal-quality saving ({ERROR_LABEL[metric]})",
                      "<p class='note'>the raw render's spp (and time) that reaches each denoised point's "
                      "error; ~ = extrapolated beyond the measured spp</p>" + saving.html())
@@ -167,8 +171,8 @@ def tradeoff_page(result: dict[str, Any], plot_png: bytes) -> Page:
     table = Table(["denoiser", "spp", "render s", "denoise s", "total s", "PSNR dB", "relMSE", "FLIP",
                    "Pareto"], better={"PSNR dB": "high", "relMSE": "low", "FLIP": "low"})
     for p in result["points"]:
-        table.rows.append([p["denoiser"], p["spp"], p["render_s"], p["denoise_s"], p["total_s"],
-                           p["psnr"], p["relmse"], p["flip"],
+        table.rows.append([OIDN_LABELS.get(p["denoiser"], p["denoiser"]), p["spp"], p["render_s"], p["denoise_s"],
+                           p["total_s"], p["psnr"], p["relmse"], p["flip"],
                            "yes" if (p["denoiser"], p["spp"]) in front else ""])
     page.add_section("Every measurement", table.html())
     page.add_section("Run", details({k: v for k, v in result.items()

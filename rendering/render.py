@@ -4,6 +4,8 @@ Every render goes through :mod:`rendering.scene_io`, so it uses a box pixel filt
 the prepared scene names) and a float32 film. Large sample counts are split into passes (independent seeds) of at most
 ``max_samples_per_pass`` samples, whose mean is returned. A film too large for the memory budget
 is rendered in crops (:mod:`rendering.render_crops`), each written straight into the output images.
+:func:`render_aovs` renders a loaded scene's AOVs alone (Mitsuba's aov integrator in place of the
+scene's) on the camera rays of its render.
 """
 from __future__ import annotations
 
@@ -23,7 +25,8 @@ from imaging.errors import RenderError, SceneError
 from imaging.memory_limit import require_memory
 from rendering.render_crops import (IMAGE_BYTES_PER_PIXEL, Crop, crop_layout, crop_seed, cropped, film_window,
                                     max_crop_pixels, render_bytes)
-from rendering.scene_io import AOV_TYPES, FILTER_CLASSES, PreparedScene, prepare_dict, prepare_xml
+from rendering.scene_io import (AOV_TYPES, FILTER_CLASSES, PreparedScene, aov_spec, check_aovs, prepare_dict,
+                                prepare_xml)
 
 DEFAULT_MAX_SAMPLES_PER_PASS = 1 << 24
 DEFAULT_MAX_MEMORY_MB = 1024.0  # the commands' --max-memory-mb default
@@ -168,10 +171,11 @@ def pass_seeds(seed: int, passes: int) -> list[int]:
 
 
 def _accumulate(scene: Any, spp: int, seed: int, max_samples_per_pass: int,
-                advance: Callable[[int], None]) -> np.ndarray:
+                advance: Callable[[int], None], integrator: Any = None) -> np.ndarray:
     """Mean of ``spp`` samples per pixel of the film's current crop window in passes of at most
     ``max_samples_per_pass`` samples (independent seeds), float64 HxWxC; ``advance(samples)``
-    after each pass. Nothing is kept per pass: any spp takes the same memory."""
+    after each pass; ``integrator``: another than the scene's. Nothing is kept per pass: any spp
+    takes the same memory."""
     import mitsuba as mi
 
     width, height = (int(v) for v in scene.sensors()[0].film().crop_size())
@@ -181,7 +185,8 @@ def _accumulate(scene: Any, spp: int, seed: int, max_samples_per_pass: int,
     for index in range(passes):
         n = per_pass if index < passes - 1 else spp - per_pass * (passes - 1)
         # np.asarray views Mitsuba's image (no float32 copy); the product is float64(x) * (n/spp)
-        img = np.multiply(np.asarray(mi.render(scene, spp=n, seed=pass_seed(seed, index))), n / spp,
+        img = np.multiply(np.asarray(mi.render(scene, spp=n, seed=pass_seed(seed, index), integrator=integrator)),
+                          n / spp,
                           dtype=np.float64)
         if acc is None:
             acc = img
@@ -194,16 +199,20 @@ def _accumulate(scene: Any, spp: int, seed: int, max_samples_per_pass: int,
 
 
 def _render_crop(scene: Any, spp: int, seed: int, max_samples_per_pass: int,
-                 halves: bool, advance: Callable[[int], None]) -> tuple[np.ndarray, np.ndarray | None]:
-    """The film's current crop window: float64 HxWxC mean and, for ``halves``, its variance."""
+                 halves: bool, advance: Callable[[int], None],
+                 integrator: Any = None) -> tuple[np.ndarray, np.ndarray | None]:
+    """The film's current crop window: float64 HxWxC mean and, for ``halves``, the variance of
+    its radiance (None with another ``integrator`` than the scene's: it renders AOVs alone)."""
     if not halves:
-        return _accumulate(scene, spp, seed, max_samples_per_pass, advance), None
+        return _accumulate(scene, spp, seed, max_samples_per_pass, advance, integrator), None
     n_a = spp // 2
     seed_b = pass_seed(seed ^ 0x5A5A5A5A, 1)
-    a = _accumulate(scene, n_a, seed, max_samples_per_pass, advance)
-    b = _accumulate(scene, spp - n_a, seed_b, max_samples_per_pass, advance)
-    with np.errstate(invalid="ignore", over="ignore"):
-        variance = half_variance(a[:, :, :3], b[:, :, :3], n_a, spp - n_a)
+    a = _accumulate(scene, n_a, seed, max_samples_per_pass, advance, integrator)
+    b = _accumulate(scene, spp - n_a, seed_b, max_samples_per_pass, advance, integrator)
+    variance = None
+    if integrator is None:
+        with np.errstate(invalid="ignore", over="ignore"):
+            variance = half_variance(a[:, :, :3], b[:, :, :3], n_a, spp - n_a)
     a *= n_a / spp  # in place, the same values as a * (n_a / spp) + b * (n_b / spp)
     b *= (spp - n_a) / spp
     a += b
@@ -251,6 +260,65 @@ def check_render_memory(width: int, height: int, aovs: Sequence[str] = (), halve
                    f"image{plural} ({', '.join(images)}) and the render's scratch", RenderError)
 
 
+def _check_spp_seed(spp: int, seed: int) -> None:
+    if isinstance(spp, bool) or not isinstance(spp, int) or spp < 1:
+        raise RenderError(f"spp must be a positive integer, got {spp!r}")
+    if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed <= MAX_SEED:
+        raise RenderError(f"seed must be an integer in [0, 2^32), got {seed!r}")
+
+
+@dataclass
+class _Film:
+    """What :func:`_render_film` gives: the film's images (3 channels each, in the film's order),
+    the radiance's variance (``halves`` with radiance) and how it went."""
+
+    images: list[np.ndarray]
+    variance: np.ndarray | None
+    nonfinite: int
+    crops: int
+
+
+def _render_film(scene: Any, spp: int, seed: int, images: int, max_samples_per_pass: int, halves: bool,
+                 max_memory_mb: float | None, integrator: Any = None, progress: Progress | None = None) -> _Film:
+    """Render the film's ``images`` 3-channel images (the scene's integrator: the radiance, then
+    its AOVs; another ``integrator``: what it gives), in crops within ``max_memory_mb``;
+    ``progress(done, total)`` after each pass."""
+    import drjit as dr
+
+    channels = 3 * images
+    _, _, width, height = film_window(scene)
+    crops = crop_layout(width, height, max_crop_pixels(channels, halves, max_memory_mb))
+    if len(crops) > 1 and filter_class(scene) != FILTER_CLASSES["box"]:  # its samples spill over crop edges
+        raise RenderError(f"a {width}x{height} film with a {filter_class(scene)} pixel filter does not fit the "
+                          f"memory budget ({max_memory_mb} MB) in one piece, and only a box filter renders in crops")
+    outputs = [np.empty((height, width, 3), np.float32) for _ in range(images)]
+    variance = np.empty((height, width, 3), np.float32) if halves and integrator is None else None
+    nonfinite = 0
+    done, total = [0], spp * width * height
+
+    def advance(samples: int) -> None:
+        done[0] += samples
+        if progress is not None:
+            progress(done[0], total)
+
+    with contextlib.ExitStack() as stack:
+        set_crop = stack.enter_context(cropped(scene)) if len(crops) > 1 else None
+        for index, crop in enumerate(crops):
+            if set_crop is not None:
+                set_crop(crop)
+            acc, var = _render_crop(scene, spp, crop_seed(seed, index), max_samples_per_pass, halves, advance,
+                                     integrator)
+            if acc.shape != (crop[3], crop[2], channels):
+                raise RenderError(f"render returned {acc.shape[2]} channels, expected {channels}")
+            nonfinite += _store(acc, outputs, crop)
+            if variance is not None and var is not None:
+                x, y, w, h = crop
+                variance[y:y + h, x:x + w] = var
+            del acc, var
+    dr.flush_malloc_cache()  # hand Dr.Jit's cached film buffers back before the caller goes on
+    return _Film(outputs, variance, nonfinite, len(crops))
+
+
 def render_loaded(
     scene: Any,
     spp: int,
@@ -277,50 +345,19 @@ def render_loaded(
     allocated (:func:`check_render_memory`). ``progress(done, total)`` is called after each pass
     with the samples rendered so far and in all (``spp`` x the film's pixels).
     """
-    if isinstance(spp, bool) or not isinstance(spp, int) or spp < 1:
-        raise RenderError(f"spp must be a positive integer, got {spp!r}")
-    if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed <= MAX_SEED:
-        raise RenderError(f"seed must be an integer in [0, 2^32), got {seed!r}")
-    import drjit as dr
+    _check_spp_seed(spp, seed)
     import mitsuba as mi
 
     start = time.perf_counter()
     halves = halves and spp >= 2
-    channels = 3 + 3 * len(aovs)
     _, _, width, height = film_window(scene)
-    crops = crop_layout(width, height, max_crop_pixels(channels, halves, max_memory_mb))
     check_render_memory(width, height, aovs, halves, max_memory_mb)
-    if len(crops) > 1 and filter_class(scene) != FILTER_CLASSES["box"]:  # its samples spill over crop edges
-        raise RenderError(f"a {width}x{height} film with a {filter_class(scene)} pixel filter does not fit the "
-                          f"memory budget ({max_memory_mb} MB) in one piece, and only a box filter renders in crops")
-    outputs = [np.empty((height, width, 3), np.float32) for _ in range(1 + len(aovs))]
-    variance = np.empty((height, width, 3), np.float32) if halves else None
-    nonfinite = 0
-    done, total = [0], spp * width * height
-
-    def advance(samples: int) -> None:
-        done[0] += samples
-        if progress is not None:
-            progress(done[0], total)
-
-    with contextlib.ExitStack() as stack:
-        set_crop = stack.enter_context(cropped(scene)) if len(crops) > 1 else None
-        for index, crop in enumerate(crops):
-            if set_crop is not None:
-                set_crop(crop)
-            acc, var = _render_crop(scene, spp, crop_seed(seed, index), max_samples_per_pass, halves, advance)
-            if acc.shape != (crop[3], crop[2], channels):
-                raise RenderError(f"render returned {acc.shape[2]} channels, expected {channels}")
-            nonfinite += _store(acc, outputs, crop)
-            if variance is not None and var is not None:
-                x, y, w, h = crop
-                variance[y:y + h, x:x + w] = var
-            del acc, var
-    dr.flush_malloc_cache()  # hand Dr.Jit's cached film buffers back before the caller goes on
+    film = _render_film(scene, spp, seed, 1 + len(aovs), max_samples_per_pass, halves, max_memory_mb,
+                        progress=progress)
     seconds = time.perf_counter() - start
-    return RenderResult(rgb=outputs[0], aovs=dict(zip(aovs, outputs[1:])), spp=spp, seed=seed,
-                        nonfinite=nonfinite, seconds=seconds, variant=mi.variant(), variance=variance,
-                        crops=len(crops), pixel_filter=_FILTER_NAMES.get(filter_class(scene), filter_class(scene)),
+    return RenderResult(rgb=film.images[0], aovs=dict(zip(aovs, film.images[1:])), spp=spp, seed=seed,
+                        nonfinite=film.nonfinite, seconds=seconds, variant=mi.variant(), variance=film.variance,
+                        crops=film.crops, pixel_filter=_FILTER_NAMES.get(filter_class(scene), filter_class(scene)),
                         to_camera=_to_camera(scene))
 
 
@@ -330,6 +367,44 @@ def _to_camera(scene: Any) -> np.ndarray | None:
         return sensor_rotation(scene)
     except SceneError:
         return None
+
+
+@dataclass
+class AovRender:
+    """A render of AOVs alone (:func:`render_aovs`): each AOV's HxWx3 float32 image (NaN/Inf set
+    to 0; ``nonfinite`` pixels had one), the wall time and the film crops."""
+
+    aovs: dict[str, np.ndarray]
+    seconds: float
+    nonfinite: int = 0
+    crops: int = 1
+
+
+def render_aovs(
+    scene: Any,
+    spp: int,
+    seed: int,
+    aovs: Sequence[str],
+    max_samples_per_pass: int = DEFAULT_MAX_SAMPLES_PER_PASS,
+    halves: bool = False,
+    max_memory_mb: float | None = DEFAULT_MAX_MEMORY_MB,
+) -> AovRender:
+    """The ``aovs`` of a loaded scene, rendered by Mitsuba's aov integrator alone (no light
+    transport) instead of the scene's integrator. Its camera rays are those :func:`render_loaded`
+    draws for the same spp, seed, ``halves`` and crop layout, so the AOVs (which depend on the
+    camera ray alone) are those of that render of the scene prepared with ``aovs``, to float
+    rounding (Mitsuba compiles each integrator into a kernel of its own)."""
+    _check_spp_seed(spp, seed)
+    if not aovs:
+        raise RenderError("render_aovs needs at least one AOV")
+    check_aovs(aovs)
+    import mitsuba as mi
+
+    start = time.perf_counter()
+    integrator = mi.load_dict({"type": "aov", "aovs": aov_spec(aovs)})
+    film = _render_film(scene, spp, seed, len(aovs), max_samples_per_pass, halves and spp >= 2, max_memory_mb,
+                        integrator)
+    return AovRender(dict(zip(aovs, film.images)), time.perf_counter() - start, film.nonfinite, film.crops)
 
 
 def render(
@@ -356,4 +431,5 @@ def render(
     return render_loaded(loaded, spp, seed, aovs, max_samples_per_pass, halves, max_memory_mb, progress)
 
 
-__all__ = ["AOV_TYPES", "RenderResult", "check_render_memory", "load_scene", "prepare", "render", "render_loaded"]
+__all__ = ["AOV_TYPES", "AovRender", "RenderResult", "check_render_memory", "load_scene", "prepare", "render",
+           "render_aovs", "render_loaded"]

@@ -102,7 +102,8 @@ class PreparedScene:
     pixel_filter: dict[str, Any] = field(default_factory=lambda: dict(BOX))
 
 
-def _check_aovs(aovs: Sequence[str]) -> None:
+def check_aovs(aovs: Sequence[str]) -> None:
+    """Raise :class:`SceneError` for an AOV name not in :data:`AOV_TYPES`."""
     unknown = [a for a in aovs if a not in AOV_TYPES]
     if unknown:
         raise SceneError(f"unknown AOV {unknown[0]!r} (known: {', '.join(AOV_TYPES)})")
@@ -215,7 +216,7 @@ def prepare_xml(
     ``resolution`` is (width, height) in pixels; ``aovs`` names extra buffers (see AOV_TYPES);
     ``params`` fills ``$name`` parameters, each of which the scene must use.
     """
-    _check_aovs(aovs)
+    check_aovs(aovs)
     spec = pixel_filter_spec(pixel_filter)
     path = Path(path)
     root = _parse(path, str(path))
@@ -272,7 +273,7 @@ def prepare_dict(
 
     Relative asset file names in the dict resolve against ``base_dir`` when given.
     """
-    _check_aovs(aovs)
+    check_aovs(aovs)
     spec = pixel_filter_spec(pixel_filter)
     d = _copy_dicts(scene)
     sensors = [k for k, v in d.items() if isinstance(v, dict) and v.get("type") in SENSOR_TYPES]

@@ -233,6 +233,36 @@ def test_exr_written_by_mitsuba_aov_film(tmp_path: Path, ckpt: Path, mi, capsys:
         assert np.array_equal(out.parts[0].channels[name], src.parts[0].channels[name])
 
 
+def test_reference_metrics_show_oidn_with_and_without_the_files_albedo_and_normals(
+        tmp_path: Path, ckpt: Path, mi, capsys: pytest.CaptureFixture) -> None:
+    """With --reference, OIDN colour-only and, from the file's albedo and normal layers, OIDN +
+    albedo + normal on the same input; a file without those layers gets OIDN colour-only alone
+    (32x24: FLIP needs more pixels than the other tests' images have)."""
+    pytest.importorskip("pyoidn", reason="make installs pyoidn (the oidn extra)")
+    scene = mi.load_dict({"type": "scene", "integrator": {"type": "aov", "aovs": "albedo:albedo,nn:sh_normal",
+                                                          "image": {"type": "path"}},
+                          "sensor": {"type": "perspective", "film": {"type": "hdrfilm", "width": 32, "height": 24},
+                                     "to_world": mi.ScalarTransform4f().look_at(origin=[0, 0, 4], target=[0, 0, 0],
+                                                                                 up=[0, 1, 0])},
+                          "ball": {"type": "sphere", "bsdf": {"type": "diffuse"}}, "sky": {"type": "constant"}})
+    mi.render(scene, spp=2, seed=1)
+    scene.sensors()[0].film().bitmap().write(str(tmp_path / "aov.exr"))
+    reference = np.asarray(mi.render(scene, spp=256, seed=2))[:, :, :3]
+    write_exr(tmp_path / "ref.exr", np.ascontiguousarray(reference, dtype=np.float32))
+    quality = run(capsys, str(tmp_path / "aov.exr"), str(tmp_path / "out.exr"), "--model", str(ckpt),
+                  "--reference", str(tmp_path / "ref.exr"))["quality"]
+    assert set(quality) == {"noisy", "denoised", "oidn", "oidn_aux"}
+    assert quality["oidn_aux"] != quality["oidn"] and quality["oidn"]["psnr"] > quality["noisy"]["psnr"]
+    write_exr(tmp_path / "rgb.exr", read_exr(tmp_path / "aov.exr").rgb)
+    plain = run(capsys, str(tmp_path / "rgb.exr"), str(tmp_path / "out.exr"), "--model", str(ckpt),
+                "--reference", str(tmp_path / "ref.exr"))["quality"]
+    assert set(plain) == {"noisy", "denoised", "oidn"} and plain["oidn"] == quality["oidn"]
+    assert denoise_main([str(tmp_path / "aov.exr"), str(tmp_path / "out.exr"), "--model", str(ckpt),
+                         "--reference", str(tmp_path / "ref.exr")]) == 0
+    printed = capsys.readouterr().out
+    assert "oidn_aux" in printed and "oidn " in printed
+
+
 def test_the_command_asks_for_no_huge_pages(tmp_path: Path, rng: np.random.Generator, ckpt: Path,
                                             monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture) -> None:
     """One image a process: huge pages would slow its only call (denoise.allocator)."""

@@ -20,14 +20,15 @@ def fake_run(rng: np.random.Generator, scenes: list[str], spps: list[int]) -> tu
         for spp in spps:
             ours = scores()
             bare = scores()
-            rows[name][str(spp)] = {"render_s": 0.1, "ours_s": 0.2, "oidn_s": 0.05, "noisy": scores(),
-                                    "ours": ours, "ours_bare": bare, "oidn": scores(),
+            rows[name][str(spp)] = {"render_s": 0.1, "aov_render_s": 0.01, "ours_s": 0.2, "oidn_s": 0.05,
+                                    "oidn_aux_s": 0.06, "noisy": scores(), "ours": ours, "ours_bare": bare,
+                                    "oidn": scores(), "oidn_aux": scores(),
                                     "models": {"fast": {**ours, "s": 0.2}}, "bare": {"fast": bare}}
     result = {"model": {"path": "model/weights/fast.ckpt"}, "models": {"fast": {}}, "spp": spps, "seed": 7,
               "ceiling_db": 40.0, "summary": evaluate.summarize(rows, spps, 40.0), "scenes": rows,
               "wall_s": 12.0, "machine": {"cores": 2}, "path": "halves"}
     images = {name: {k: rng.random((12, 16, 3)).astype(np.float32)
-                     for k in ("noisy", "ours", "ours_bare", "oidn", "reference")} for name in scenes}
+                     for k in ("noisy", "ours", "ours_bare", "oidn", "oidn_aux", "reference")} for name in scenes}
     return result, images
 
 
@@ -35,10 +36,14 @@ def test_scoreboard_page_sets_and_tables(rng: np.random.Generator) -> None:
     result, images = fake_run(rng, ["alpha", "beta", "gamma"], [4, 16])
     page = evaluate.scoreboard_page(result, images, 4)
     assert [s.name for s in page.sets] == ["alpha", "beta", "gamma"]
-    assert [r.label for r in page.sets[0].rows] == ["noisy", "ours", "bare", "OIDN", "reference"]
-    assert all(r.flip for r in page.sets[0].rows[:4]) and page.sets[0].reference == page.sets[0].rows[4].image
+    assert [r.label for r in page.sets[0].rows] == ["noisy", "ours", "bare", "OIDN colour-only",
+                                                    "OIDN + albedo + normal", "reference"]
+    assert all(r.flip for r in page.sets[0].rows[:5]) and page.sets[0].reference == page.sets[0].rows[5].image
     text = page.html()
     assert "Scored means (2 scenes" in text and "alpha*" in text and text.count("<tr>") > 3 * 2
+    assert "OIDN + albedo + normal PSNR" in text and "AOV pass s" in text
+    table = evaluate.markdown(result["scenes"], result["summary"], [4, 16], 40.0, "fast")
+    assert "| OIDN colour-only PSNR | OIDN + albedo + normal PSNR |" in table
 
 
 def test_scoreboard_flips_scenes_in_a_browser(chromium: str, rng: np.random.Generator,  # noqa: F811

@@ -17,8 +17,8 @@ from imaging.exr import write_exr
 from imaging.metrics import flip, psnr, relmse
 from pipeline.cli import main as render_main
 from denoise.denoiser import Denoiser
-from pipeline.evaluation import (BARE, OIDN, RenderSettings, denoise_outputs, evaluate, make_denoiser, render_input,
-                                 score)
+from pipeline.evaluation import (AOVS, BARE, OIDN, OIDN_AUX, RenderSettings, denoise_outputs, evaluate, make_denoiser,
+                                 render_input, score, with_aovs)
 from denoise.oidn import oidn_available
 from tests.test_denoiser import TINY, write_tiny_checkpoint
 
@@ -60,6 +60,34 @@ def test_outputs_are_the_default_path_and_the_bare_network(demo: tuple, ckpt: Pa
     assert not np.array_equal(outputs["tiny"].image, outputs["tiny" + BARE].image)
 
 
+def test_with_aovs_adds_the_aovs_of_the_render_and_leaves_its_radiance(demo: tuple) -> None:
+    """The AOV pass: the albedo and normals the same render with AOVs has, on the same rgb array;
+    the scene renders our models' input as before; a render that has them is kept as it is."""
+    settings, scene = demo
+    render = render_input(scene, 4, settings)
+    added, seconds = with_aovs(render, scene, settings)
+    assert added.rgb is render.rgb and render.aovs == {} and seconds > 0
+    wrapped = render_input(settings.load(AOVS), 4, settings, AOVS)
+    for name in AOVS:
+        assert np.array_equal(added.aovs[name], wrapped.aovs[name]), name
+    assert np.array_equal(render_input(scene, 4, settings).rgb, render.rgb)
+    assert with_aovs(wrapped, scene, settings) == (wrapped, 0.0)
+
+
+@pytest.mark.skipif(not oidn_available(), reason="make installs pyoidn (the oidn extra)")
+def test_oidn_colour_only_and_with_albedo_and_normals(demo: tuple, ckpt: Path) -> None:
+    """With OIDN: colour-only and with the render's albedo and normals, both scored; our model's
+    figures are those of the same evaluation without OIDN."""
+    settings, scene = demo
+    reference = render_input(scene, 64, RenderSettings(str(DEMO), SIZE, seed=99)).rgb
+    ev = evaluate(scene, 4, settings, reference, {"tiny": Denoiser(ckpt)}, oidn=True)
+    assert set(ev.scores) == {"noisy", "tiny", OIDN, OIDN_AUX} and ev.aov_seconds > 0
+    assert ev.scores[OIDN_AUX] != ev.scores[OIDN]
+    alone = evaluate(scene, 4, settings, reference, {"tiny": Denoiser(ckpt)}, oidn=False)
+    assert alone.scores["tiny"] == ev.scores["tiny"] and alone.aov_seconds is None
+    assert set(denoise_outputs(alone.render, {}, oidn=True)) == {OIDN}  # no AOVs, no OIDN + albedo + normal
+
+
 def test_evaluate_scores_every_output_with_the_metrics(demo: tuple, ckpt: Path) -> None:
     settings, scene = demo
     reference = render_input(scene, 64, RenderSettings(str(DEMO), SIZE, seed=99)).rgb
@@ -81,13 +109,8 @@ def test_settings_refuse_two_references_or_none_when_needed() -> None:
     RenderSettings("s.xml").check()
 
 
-@pytest.mark.slow
-@pytest.mark.parametrize("energy, energy_flag", [("on", []), ("off", ["--no-energy"])])
-def test_scoreboard_and_render_and_denoise_give_the_same_psnr(tmp_path: Path, ckpt: Path, energy: str,
-                                                              energy_flag: list[str]) -> None:
-    """The same scene, spp and seed through ``python -m benchmarks.evaluate`` and through
-    ``render-and-denoise``: the same noisy, denoised and OIDN figures, with and without the
-    energy correction (``--energy off`` / ``--no-energy``)."""
+def eval_folder(tmp_path: Path) -> Path:
+    """``tmp_path/eval/demo``: the demo scene as an eval scene, its 64-spp reference beside it."""
     folder = tmp_path / "eval" / "demo"
     shutil.copytree(DEMO.parent, folder)
     (folder / "demo.xml").rename(folder / "scene.xml")
@@ -96,6 +119,31 @@ def test_scoreboard_and_render_and_denoise_give_the_same_psnr(tmp_path: Path, ck
     write_exr(folder / "reference.exr", reference)
     (folder / "reference.json").write_text(json.dumps({"reference_psnr_ceiling_db": 45.0,
                                                        "shape": [SIZE[1], SIZE[0], 3]}))
+    return folder
+
+
+@pytest.mark.skipif(not oidn_available(), reason="make installs pyoidn (the oidn extra)")
+def test_scoreboard_has_oidn_colour_only_and_with_albedo_and_normals(tmp_path: Path, ckpt: Path) -> None:
+    eval_folder(tmp_path)
+    assert scoreboard.main(["--eval-dir", str(tmp_path / "eval"), "--model", str(ckpt), "--spp", "2",
+                            "--out", str(tmp_path / "board"), "--quiet"]) == 0
+    board = json.loads((tmp_path / "board" / "evaluate.json").read_text())
+    entry, mean = board["scenes"]["demo"]["2"], board["summary"]["scored"]["2"]
+    assert entry["oidn_aux"] != entry["oidn"] and entry["aov_render_s"] > 0 and entry["oidn_aux_s"] > 0
+    assert mean["oidn_aux_psnr"] == entry["oidn_aux"]["psnr"] and mean["oidn_psnr"] == entry["oidn"]["psnr"]
+    table = (tmp_path / "board" / "evaluate.md").read_text()
+    assert "OIDN colour-only PSNR" in table and "OIDN + albedo + normal PSNR" in table
+    assert "OIDN + albedo + normal" in (tmp_path / "board" / "evaluate.html").read_text()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("energy, energy_flag", [("on", []), ("off", ["--no-energy"])])
+def test_scoreboard_and_render_and_denoise_give_the_same_psnr(tmp_path: Path, ckpt: Path, energy: str,
+                                                              energy_flag: list[str]) -> None:
+    """The same scene, spp and seed through ``python -m benchmarks.evaluate`` and through
+    ``render-and-denoise``: the same noisy, denoised and OIDN figures, with and without the
+    energy correction (``--energy off`` / ``--no-energy``)."""
+    folder = eval_folder(tmp_path)
     spp = 4
     assert scoreboard.main(["--eval-dir", str(tmp_path / "eval"), "--model", str(ckpt), "--spp", str(spp),
                             "--out", str(tmp_path / "board"), "--quiet", "--energy", energy]) == 0
@@ -109,6 +157,7 @@ def test_scoreboard_and_render_and_denoise_give_the_same_psnr(tmp_path: Path, ck
     assert quality["denoised"]["relmse"] == board["ours"]["relmse"]
     if oidn_available():
         assert quality["oidn"]["psnr"] == board["oidn"]["psnr"]
+        assert quality["oidn_aux"]["psnr"] == board["oidn_aux"]["psnr"]
     assert board["ours_bare"]["psnr"] != board["ours"]["psnr"]
 
 

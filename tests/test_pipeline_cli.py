@@ -16,8 +16,8 @@ from denoise.denoiser import Denoiser
 from tests.test_denoiser import write_tiny_checkpoint
 
 DEMO = Path(__file__).resolve().parents[1] / "scenes" / "examples" / "demo.xml"
-OUTPUTS = ("noisy.exr", "denoised.exr", "oidn.exr", "reference.exr", "noisy.png", "denoised.png",
-           "oidn.png", "reference.png", "comparison.png", "metrics.json", "report.html", "config.json")
+OUTPUTS = ("noisy.exr", "denoised.exr", "oidn.exr", "oidn_aux.exr", "reference.exr", "noisy.png", "denoised.png",
+           "oidn.png", "oidn_aux.png", "reference.png", "comparison.png", "metrics.json", "report.html", "config.json")
 
 
 @pytest.fixture(scope="module")
@@ -46,7 +46,9 @@ def test_render_and_denoise_writes_everything(demo_run: Path, ckpt: Path) -> Non
         assert stat.S_IMODE((demo_run / name).stat().st_mode) == 0o644, name
     metrics = json.loads((demo_run / "metrics.json").read_text())
     assert metrics["resolution"] == [32, 24] and metrics["spp"] == 4
-    assert set(metrics["quality"]) == {"noisy", "denoised", "oidn"} and metrics["oidn"]["compared"]
+    assert set(metrics["quality"]) == {"noisy", "denoised", "oidn", "oidn_aux"} and metrics["oidn"]["compared"]
+    assert metrics["quality"]["oidn_aux"]["psnr"] != metrics["quality"]["oidn"]["psnr"]
+    assert metrics["timings"]["aov_render_s"] > 0 and metrics["timings"]["oidn_aux_s"] > 0
     for row in metrics["quality"].values():
         for key in ("psnr", "ssim", "relmse", "smape", "flip", "hdr_flip"):
             assert np.isfinite(row[key]), key
@@ -56,7 +58,8 @@ def test_render_and_denoise_writes_everything(demo_run: Path, ckpt: Path) -> Non
     assert all(v >= 0 for v in metrics["timings"].values())
     assert read_exr(demo_run / "denoised.exr").rgb.shape == (24, 32, 3)
     html = (demo_run / "report.html").read_text()
-    assert "PSNR" in html and "OIDN" in html and 'data-dtype="f16"' in html and "noise guard weight" in html
+    assert "PSNR" in html and 'data-dtype="f16"' in html and "noise guard weight" in html
+    assert "OIDN colour-only" in html and "OIDN + albedo + normal" in html
     assert "energy correction" in html and "mean factor" in html
 
 
@@ -140,6 +143,17 @@ def test_noise_guard_on_by_default_and_off_on_request(tmp_path: Path, demo_run: 
     assert not np.array_equal(read_exr(out / "noisy.exr").rgb, read_exr(demo_run / "noisy.exr").rgb)
 
 
+def test_oidn_with_albedo_and_normals_leaves_our_input_as_it_was(tmp_path: Path, demo_run: Path, ckpt: Path) -> None:
+    """The AOV pass for OIDN + albedo + normal renders apart: without OIDN the render and our output
+    are the same images, bit for bit."""
+    out = tmp_path / "alone"
+    assert main([str(DEMO), "--spp", "4", "--res", "32", "24", "--model", str(ckpt), "--no-compare", "--quiet",
+                 "--out", str(out)]) == 0
+    for name in ("noisy.exr", "denoised.exr"):
+        assert np.array_equal(read_exr(out / name).rgb, read_exr(demo_run / name).rgb), name
+    assert not (out / "oidn_aux.exr").exists()
+
+
 def test_denoise_command(tmp_path: Path, demo_run: Path, ckpt: Path, capsys: pytest.CaptureFixture) -> None:
     half = tmp_path / "noisy16.exr"
     write_exr(half, read_exr(demo_run / "noisy.exr").rgb, half=True)
@@ -147,7 +161,7 @@ def test_denoise_command(tmp_path: Path, demo_run: Path, ckpt: Path, capsys: pyt
     assert denoise_main([str(half), str(out), "--model", str(ckpt),
                          "--reference", str(demo_run / "reference.exr"), "--json"]) == 0
     printed = json.loads(capsys.readouterr().out)
-    assert set(printed["quality"]) == {"noisy", "denoised"}
+    assert set(printed["quality"]) == {"noisy", "denoised", "oidn"}  # no albedo or normal layers in the file
     assert read_exr(out).rgb.shape == (24, 32, 3)
 
 

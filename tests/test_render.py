@@ -11,8 +11,8 @@ import pytest
 
 from rendering import render_crops
 from imaging.errors import RenderError
-from rendering.render import (check_render_memory, half_variance, load_scene, pass_seeds, prepare, render, render_loaded,
-                            zero_nonfinite)
+from rendering.render import (check_render_memory, half_variance, load_scene, pass_seeds, prepare, render,
+                              render_aovs, render_loaded, zero_nonfinite)
 from rendering.render_crops import crop_layout, crop_seed, film_window, max_crop_pixels
 from tests.conftest import lit_plane_scene
 
@@ -157,6 +157,24 @@ def test_crop_seeds_are_distinct_and_crop_zero_keeps_the_seed() -> None:
     seeds = [crop_seed(7, i) for i in range(1000)]
     assert seeds[0] == 7 and len(set(seeds)) == 1000 and all(0 <= s < 2**32 for s in seeds)
     assert not set(seeds[1:]) & set(pass_seeds(7, 1000))  # no crop reuses a pass seed of crop 0
+
+
+@pytest.mark.parametrize("halves", [False, True])
+def test_aov_pass_gives_the_aovs_of_the_render_that_has_them(plane_scene: dict, halves: bool) -> None:
+    """render_aovs on the plain scene: the AOVs a render of the scene prepared with them gives (the
+    same camera rays), bit for bit; the plain scene renders the same radiance after the pass."""
+    aovs = ("albedo", "sh_normal")
+    plain = load_scene(prepare(plane_scene))
+    before = render_loaded(plain, 4, 5, halves=halves)
+    alone = render_aovs(plain, 4, 5, aovs, halves=halves)
+    both = render_loaded(load_scene(prepare(plane_scene, aovs=aovs)), 4, 5, aovs, halves=halves)
+    assert set(alone.aovs) == set(aovs) and alone.seconds > 0 and alone.nonfinite == 0
+    for name in aovs:
+        assert np.array_equal(alone.aovs[name], both.aovs[name]), name
+    assert np.array_equal(render_loaded(plain, 4, 5, halves=halves).rgb, before.rgb)
+    assert np.array_equal(before.rgb, both.rgb)  # a path tracer's radiance is the same wrapped or not
+    with pytest.raises(RenderError, match="at least one AOV"):
+        render_aovs(plain, 4, 5, ())
 
 
 @pytest.mark.parametrize("size", [(128, 96), (4500, 3)])  # bands; a grid (one row exceeds the budget)

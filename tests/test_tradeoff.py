@@ -35,7 +35,7 @@ def test_tradeoff_end_to_end(tmp_path: Path, ckpts: list[Path], capsys: pytest.C
     assert tradeoff_main([str(DEMO), "--res", "32", "32", "--spp", "2,8", "--reference-spp", "32",
                           "--repeat", "2", "--models", ",".join(map(str, ckpts)), *oidn,
                           "--out", str(out)]) == 0
-    names = {"none", "tiny", "tiny-2"} | ({"oidn"} if oidn else set())
+    names = {"none", "tiny", "tiny-2"} | ({"oidn", "oidn_aux"} if oidn else set())
     result = json.loads((out / "tradeoff.json").read_text())
     assert result["resolution"] == [32, 32] and result["reference"]["spp"] == 32
     assert {p["denoiser"] for p in result["points"]} == names and len(result["points"]) == 2 * len(names)
@@ -48,6 +48,10 @@ def test_tradeoff_end_to_end(tmp_path: Path, ckpts: list[Path], capsys: pytest.C
     for metric in ("psnr", "relmse", "flip"):
         assert result["pareto"][metric], metric
     assert len(result["equal_quality"]) == 3 * 2 * (len(names) - 1)
+    by = {(p["denoiser"], p["spp"]): p for p in result["points"]}
+    for spp in (2, 8) if oidn else ():  # the AOV pass counts in OIDN + albedo + normal's render time
+        assert by[("oidn_aux", spp)]["render_s"] > by[("oidn", spp)]["render_s"] == by[("none", spp)]["render_s"]
+        assert by[("oidn_aux", spp)]["psnr"] != by[("oidn", spp)]["psnr"]
     rows = list(csv.DictReader((out / "tradeoff.csv").open()))
     assert len(rows) == len(result["points"]) and any(r["pareto"] == "1" for r in rows)
     png = (out / "tradeoff.png").read_bytes()
@@ -55,6 +59,8 @@ def test_tradeoff_end_to_end(tmp_path: Path, ckpts: list[Path], capsys: pytest.C
     assert json.loads((out / "config.json").read_text())["spp"] == [2, 8]
     report = (out / "report.html").read_text()  # the plot embedded, the tables, nothing fetched
     assert "data:image/png;base64," in report and "Equal-quality saving" in report and "tiny-2" in report
+    if oidn:
+        assert "OIDN colour-only" in report and "OIDN + albedo + normal" in report
     assert report.count("<tr>") >= 1 + len(result["points"]) and "https://" not in report
     printed = capsys.readouterr().out
     assert "equal-quality saving" in printed and "tiny-2" in printed

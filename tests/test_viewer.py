@@ -177,7 +177,7 @@ def test_keys_flip_images_in_place_and_zoom_shows_pixel_blocks(chromium: str, re
     with Browser(chromium, 1000, 800) as browser:
         view = Viewer(browser, report)
         shots = {}
-        for key, label in zip("1234", ("noisy", "ours", "OIDN", "reference")):
+        for key, label in zip("12345", ("noisy", "ours", "OIDN colour-only", "OIDN + albedo + normal", "reference")):
             view.press(key, f"0/{label}/image")
             shots[label] = view.image().astype(int)
         zoom = view.state()["zoom"]
@@ -192,10 +192,10 @@ def test_keys_flip_images_in_place_and_zoom_shows_pixel_blocks(chromium: str, re
         view.press("f", "0/ours/flip")
         flip_shot = view.image().astype(int)
         assert np.abs(flip_shot - shots["ours"]).mean() > 5
-        view.press("3", "0/OIDN/flip")  # the column stays while the row flips
+        view.press("3", "0/OIDN colour-only/flip")  # the column stays while the row flips
         assert np.abs(view.image().astype(int) - flip_shot).mean() > 0.5
-        view.press("r", "0/OIDN/relse")
-        view.press("5", "0/noise guard weight/image")
+        view.press("r", "0/OIDN colour-only/relse")
+        view.press("6", "0/noise guard weight/image")
         view.press("i")
         view.press("2", "0/ours/image")
 
