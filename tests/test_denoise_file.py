@@ -254,10 +254,10 @@ def test_reference_metrics_show_oidn_with_and_without_the_files_albedo_and_norma
     assert set(quality) == {"noisy", "denoised", "oidn", "oidn_aux"}
     assert quality["oidn_aux"] != quality["oidn"] and quality["oidn"]["psnr"] > quality["noisy"]["psnr"]
     write_exr(tmp_path / "rgb.exr", read_exr(tmp_path / "aov.exr").rgb)
-    plain = run(capsys, str(tmp_path / "rgb.exr"), str(tmp_path / "out.exr"), "--model", str(ckpt),
+    plain = run(capsys, str(tmp_path / "rgb.exr"), str(tmp_path / "out2.exr"), "--model", str(ckpt),
                 "--reference", str(tmp_path / "ref.exr"))["quality"]
     assert set(plain) == {"noisy", "denoised", "oidn"} and plain["oidn"] == quality["oidn"]
-    assert denoise_main([str(tmp_path / "aov.exr"), str(tmp_path / "out.exr"), "--model", str(ckpt),
+    assert denoise_main([str(tmp_path / "aov.exr"), str(tmp_path / "out3.exr"), "--model", str(ckpt),
                          "--reference", str(tmp_path / "ref.exr")]) == 0
     printed = capsys.readouterr().out
     assert "oidn_aux" in printed and "oidn " in printed

@@ -18,6 +18,7 @@ import torch
 
 from imaging.errors import ConfigError, DatasetError
 from model.checkpoint import BOX_FILTER, checkpoint_meta
+from model.config import ModelConfig
 from model.device import device_name
 from training.batches import available_cpus
 from training.recipe import Recipe
@@ -98,6 +99,9 @@ def recipe_meta(header: dict[str, Any], recipe: Recipe, hardware_name: str) -> d
     if recorded.get("init_from") or stage.init_from:
         raise ConfigError(f"recipe {recipe.name}: only a run from scratch has its hours in its own file")
     expected = json.loads(json.dumps(dataclasses.asdict(stage.train_config("", [""], None)), default=list))
+    if isinstance(recorded.get("model"), dict):  # network fields added since the file was written hold their defaults
+        defaults = json.loads(json.dumps(dataclasses.asdict(ModelConfig()), default=list))
+        recorded = {**recorded, "model": {**defaults, **recorded["model"]}}
     differ = sorted(k for k in expected if k not in _RUN_FIELDS and recorded.get(k) != expected[k])
     if differ:
         raise ConfigError(f"recipe {recipe.name}: the file was trained with other settings than stage "
