@@ -220,12 +220,15 @@ class Denoiser:
     render's spp (:meth:`active`). ``path``, ``model``, ``config``, ``meta``, ``net`` and ``dtype``
     are the first network's; ``members`` holds every network loaded, each once.
     ``max_memory_mb`` bounds the scratch memory of :meth:`denoise_array` as OIDN's
-    ``maxMemoryMB`` does: the memory it uses beyond the input and output images (the output,
-    the guard's weight map and, asked for, the network's output; an ensemble also holds each
-    further model's output and a weight per model and pixel). Every step works within it:
-    counting invalid values and the exposure in row blocks, the network on tiles planned with
-    :func:`denoise.chain.tile_bytes_per_pixel`, the noise guard on tiles and row blocks
-    (:func:`denoise.noise_guard.guard_in_place`). Creating a Denoiser fixes glibc's mmap
+    ``maxMemoryMB`` does: the memory it uses beyond the input images and the output (asked for,
+    the network's output is one more image). Every step works within it: counting invalid values
+    and the exposure in row blocks, the network on tiles planned with
+    :func:`denoise.chain.tile_bytes_per_pixel` beside the networks' fixed cost
+    (:meth:`fixed_bytes`), an ensemble in bands whose members' outputs and weights count against
+    the budget (:meth:`ensemble_plan`), the noise guard on tiles and row blocks
+    (:func:`denoise.noise_guard.guard_in_place`) beside its weight map, the energy correction in
+    row blocks; freed heap memory is handed back between the steps
+    (:func:`denoise.allocator.release_free_memory`). Creating a Denoiser fixes glibc's mmap
     threshold for the process (:mod:`denoise.allocator`): without it freed tile temporaries stay
     resident and the process peaks at about twice that; with ``huge_pages`` it also asks torch for
     transparent huge pages (:func:`denoise.allocator.use_huge_pages`: a fresh mapping faults per 2 MiB,
@@ -447,7 +450,7 @@ class Denoiser:
                     best = (work, EnsemblePlan(rows, tuple(cores), combine_bytes))
         if best is not None:
             return best[1]
-        return EnsemblePlan(rows, tuple((align, align) for _ in members), self.max_bytes / 4)
+        return EnsemblePlan(min(height, align), tuple((align, align) for _ in members), self.max_bytes / 4)
 
     def denoise_array(self, rgb: np.ndarray, albedo: np.ndarray | None = None,
                       normals: np.ndarray | None = None, variance: np.ndarray | None = None,
