@@ -1,7 +1,8 @@
 """Peak scratch memory of the denoising path under --max-memory-mb: one tile, and whole commands.
 
-    python -m benchmarks.denoise_memory [--parts calibrate,commands] [--budgets 256,1024]
+    python -m benchmarks.denoise_memory [--parts calibrate,commands,path] [--budgets 256,1024]
         [--sizes 1920x1080,3840x2160,7680x4320] [--spp 2] [--before REV] [--quick]
+        [--entries fast,balanced,high] [--entry-spp 16,128] [--path-size 3840x2160] [--runs E:SPP:MB,...]
 
 The budget is OIDN's ``maxMemoryMB``: scratch memory beyond the input and output images. Every
 figure comes from a fresh child process that measures its own resident memory (``/proc/self``):
@@ -23,6 +24,15 @@ exact, and **scratch** = the stage's peak - the RSS at its start - the images it
   (its images: the file's channels and the colour and variance made from them), the denoise step,
   writing. ``--before REV`` measures the same with the code of REV (``git archive``).
 
+* path: the whole ``denoise`` command as a person counts it, per registry entry (``--entries``),
+  render spp (``--entry-spp``: which networks run) and budget: an EXR of the demo scene at
+  ``--path-size`` (rendered once at ``--spp`` in two halves: its colour and a ``variance`` layer)
+  denoised by :func:`pipeline.denoise_file.denoise_file` with its spp set, in a fresh process
+  (``--runs``: only the (entry, spp, budget) triples listed).
+  **scratch** = the peak RSS from just before the file is read to the end of writing - the RSS
+  then (the loaded process) - the images (the input's colour and variance as float32, the
+  output).
+
 Prints a table and writes benchmarks/results/denoise_memory.json (command, date, load average
 and machine recorded); ``--quick`` (small sizes, one preset) writes nothing.
 """
@@ -37,6 +47,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from collections.abc import Callable
 from typing import Any
 
 from imaging.atomic_io import write_json_atomic
@@ -155,6 +166,41 @@ print(json.dumps({"base_mb": base / MB, "peak_mb": peak, "stages": stages, **ext
 """
 
 
+_RENDER_CHILD = r"""
+import json, sys
+job = json.loads(sys.argv[1])
+from imaging.exr import write_exr
+from pipeline.evaluation import RenderSettings, render_input
+settings = RenderSettings(scene=job["scene"], resolution=tuple(job["res"]), max_memory_mb=1024)
+render = render_input(settings.load(), job["spp"], settings)
+write_exr(job["out"], render.rgb, layers={"variance": render.variance}, metadata={"spp": job["spp"]})
+print(json.dumps({"written": job["out"]}))
+"""
+
+_PATH_CHILD = _COMMON + r"""
+import pipeline.denoise_file as file_mod
+seen = {}
+read_input = file_mod.read_input
+
+def measured_read(*args, **kwargs):  # the high-water mark from just before the image is read
+    seen["base"] = reset()
+    seen["t0"] = time.perf_counter()
+    image = read_input(*args, **kwargs)
+    seen["images"] = 2 * image.rgb.nbytes + image.variance.nbytes  # the input, its variance, the output
+    return image
+
+file_mod.read_input = measured_read
+cfg = file_mod.DenoiseFileConfig(inputs=[job["input"]], output=job["out"], model=job["entry"], spp=job["spp"],
+                                 max_memory_mb=job["budget"])
+record = file_mod.denoise_file(cfg)
+peak = status("VmHWM")
+print(json.dumps({"base_mb": seen["base"] / MB, "peak_mb": peak / MB, "images_mb": seen["images"] / MB,
+                  "scratch_mb": (peak - seen["base"] - seen["images"]) / MB, "models": record["models_run"],
+                  "precision": record["precision"], "denoise_s": record["denoise_s"],
+                  "seconds": time.perf_counter() - seen["t0"]}))
+"""
+
+
 def run_child(code: Path, script: str, job: dict[str, Any], env: dict[str, str] | None = None) -> dict[str, Any]:
     """``script`` in a fresh Python process whose working directory and import path are ``code``."""
     proc = subprocess.run([sys.executable, "-c", script, json.dumps(job)], capture_output=True, text=True,
@@ -235,6 +281,38 @@ def commands(sizes: list[tuple[int, int]], budgets: list[float], spp: int, befor
     return rows
 
 
+def path(runs: list[tuple[str, int, float]], size: tuple[int, int], spp: int, work: Path,
+         done: Callable[[list[dict[str, Any]]], None] = lambda rows: None) -> list[dict[str, Any]]:
+    """The whole ``denoise`` command per (entry, spp, budget) of ``runs`` on one rendered EXR of
+    ``size``; ``done`` is given the rows so far after each (a long run keeps what it measured)."""
+    work.mkdir(parents=True, exist_ok=True)
+    source = work / f"input-{size[0]}x{size[1]}.exr"
+    run_child(ROOT, _RENDER_CHILD, {"scene": str(DEMO), "res": list(size), "spp": spp, "out": str(source)})
+    rows = []
+    for entry, entry_spp, budget in runs:
+        job = {"input": str(source), "out": str(work / "out.exr"), "entry": entry, "spp": entry_spp, "budget": budget}
+        row = {"res": list(size), "entry": entry, "spp": entry_spp, "budget_mb": budget,
+               **run_child(ROOT, _PATH_CHILD, job)}
+        row["x_budget"] = row["scratch_mb"] / budget
+        rows.append(row)
+        print(f"{size[0]}x{size[1]} {entry:8} {entry_spp:4} spp {budget:6g} MB: scratch {row['scratch_mb']:6.0f} MB "
+              f"({row['x_budget']:4.2f}x budget; peak {row['peak_mb']:.0f}, process {row['base_mb']:.0f}, "
+              f"images {row['images_mb']:.0f} MB), {'+'.join(row['models'])}, {row['seconds']:.0f} s", flush=True)
+        done(rows)
+    return rows
+
+
+def path_runs(text: str | None, entries: str, entry_spps: str, budgets: list[float]) -> list[tuple[str, int, float]]:
+    """``--runs ENTRY:SPP:MB,...`` as given, else every entry, spp and budget."""
+    if text:
+        runs = []
+        for item in text.split(","):
+            entry, spp, budget = item.split(":")
+            runs.append((entry, int(spp), float(budget)))
+        return runs
+    return [(e, int(n), b) for e in entries.split(",") for n in entry_spps.split(",") for b in budgets]
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--parts", default="calibrate,commands")
@@ -243,9 +321,13 @@ def main() -> None:
     p.add_argument("--spp", type=int, default=2)
     p.add_argument("--before", metavar="REV", help="also measure the commands with the code of this git revision")
     p.add_argument("--quick", action="store_true", help="one preset, small tiles, 640x360 only; writes nothing")
+    p.add_argument("--entries", default="fast,balanced,high", help="path: registry entries")
+    p.add_argument("--entry-spp", default="16,128", help="path: the spp each entry is told (which networks run)")
+    p.add_argument("--path-size", type=size_list, default=size_list("3840x2160"), help="path: the image size")
+    p.add_argument("--runs", help="path: ENTRY:SPP:MB,... instead of every entry, spp and budget")
     args = p.parse_args()
     parts = args.parts.split(",")
-    if not set(parts) <= {"calibrate", "commands"}:
+    if not set(parts) <= {"calibrate", "commands", "path"}:
         raise SystemExit(f"denoise_memory: unknown part in --parts {args.parts!r}")
     sizes = [(640, 360)] if args.quick else args.sizes
     budgets = [float(b) for b in args.budgets.split(",")]
@@ -258,6 +340,17 @@ def main() -> None:
             "load_avg_before": os.getloadavg()}
         if part == "calibrate":
             record["rows"] = calibrate(("flat-s",) if args.quick else PRESETS, (128, 256) if args.quick else TILE_SIDES)
+        elif part == "path":
+            size = (640, 360) if args.quick else args.path_size[0]
+            record.update(scene=str(DEMO.relative_to(ROOT)), render_spp=args.spp)
+
+            def keep(rows: list[dict[str, Any]]) -> None:
+                if not args.quick:
+                    write_json_atomic(RESULTS, {**result, part: {**record, "rows": rows, "complete": False}})
+
+            with tempfile.TemporaryDirectory(prefix="denoise-memory-") as tmp:
+                record["rows"] = path(path_runs(args.runs, args.entries, args.entry_spp, budgets), size, args.spp,
+                                      Path(tmp), keep)
         else:
             record.update(scene=str(DEMO.relative_to(ROOT)), spp=args.spp, before_rev=args.before)
             with tempfile.TemporaryDirectory(prefix="denoise-memory-") as tmp:

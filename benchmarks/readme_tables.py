@@ -621,6 +621,21 @@ def denoise_memory(results: Results) -> list[str]:
                      "render peak MB", "largest other stage MB", "process peak MB", "denoise s"], rows, right=3)]
 
 
+def denoise_path_memory(results: Results) -> list[str]:
+    """The whole ``denoise`` command per registry entry, spp and budget: scratch as a person counts it."""
+    data = results.json("denoise_memory")["path"]
+    rows = [[f"{r['res'][0]}x{r['res'][1]}", f"`{r['entry']}`", str(r["spp"]), " + ".join(r["models"]),
+             f"{r['budget_mb']:g}", _f(r["scratch_mb"], 0), f"{r['x_budget']:.2f}", _f(r["peak_mb"], 0),
+             _f(r["base_mb"], 0), _f(r["images_mb"], 0), _f(r["seconds"], 0)] for r in data["rows"]]
+    note = (f"`denoise` of an EXR of {data['scene']} rendered at {data['render_spp']} spp in two halves (colour and a "
+            "`variance` layer), told the spp of the row (which networks run), in a fresh process. Scratch = the peak "
+            "RSS from just before the file is read to the end of writing - the RSS then (the loaded process) - the "
+            "images (the input's colour and variance as float32, the output). s: reading, denoising and writing.")
+    return [caption("python -m benchmarks.denoise_memory", "benchmarks/results/denoise_memory.json", data, note), "",
+            *_table(["image", "entry", "spp", "networks", "budget MB", "scratch MB", "x budget", "peak MB",
+                     "process MB", "images MB", "s"], rows, right=4)]
+
+
 def denoise_tile_memory(results: Results) -> list[str]:
     """One tile of each preset: measured scratch against the planner's estimate, per side."""
     data = results.json("denoise_memory")["calibrate"]
@@ -673,7 +688,8 @@ def mutation(results: Results) -> list[str]:
 TABLES: dict[str, Callable[[Results], list[str]]] = {
     f.__name__: f for f in (models, strip_caption, unknown_spp, image_noise, denoise_process, scoreboard, scoreboard_scenes, aov_cost, noise_guard, noise_guard_settings, energy, ensemble, inference,
                             multiscale_presets, roofline, budget, presets, recipe_runs, validation, val_scenes, trend, ablations,
-                            train_throughput, scaleout, extremes, render_memory, denoise_memory, denoise_tile_memory,
+                            train_throughput, scaleout, extremes, render_memory, denoise_memory, denoise_path_memory,
+                            denoise_tile_memory,
                             fuzz, mutation)}
 
 

@@ -56,6 +56,22 @@ def fix_mmap_threshold(threshold: int = DEFAULT_THRESHOLD) -> bool:
         return False
 
 
+def release_free_memory() -> bool:
+    """Hand the free memory inside glibc's heaps back to the system (``malloc_trim(0)``: every
+    arena, not only the top of the main one). Blocks below the mmap threshold (a whole-image pass's
+    row blocks of a few hundred KiB, numpy's small temporaries, torch's) are freed into their
+    thread's heap, and a live block after them keeps the freed space resident: measured after the
+    noise statistics and the networks of a 1536x1024 image, 15-17 MB each. False where the C
+    library is not glibc (nothing is done)."""
+    if platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
+        return False
+    try:
+        ctypes.CDLL(None).malloc_trim(ctypes.c_size_t(0))
+        return True
+    except (OSError, AttributeError):
+        return False
+
+
 def use_huge_pages(on: bool = True) -> bool:
     """Ask torch's CPU allocator to back blocks of 2 MiB or more with transparent huge pages
     (``THP_MEM_ALLOC_ENABLE=1``; ``on`` False: not, ``=0``), unless the environment already says

@@ -29,7 +29,7 @@ import torch
 from torch import nn
 
 from imaging.blocks import block_rows, parallel_map, pass_workers, row_blocks
-from denoise.tiling import Core, Tile, run_windows
+from denoise.tiling import Core, Tile, plan_tiles, run_windows, window_span
 from model.architectures import alignment, inference_bytes_per_pixel, receptive_radius
 from model.config import ModelConfig
 from model.device import module_device
@@ -51,8 +51,11 @@ DEFAULT_PASS_BYTES = 64 * 2**20
 # own estimate is larger for every preset in float32.
 TILE_CHAIN_BYTES_PER_PIXEL = 160
 # One tile's fixed cost beside its pixels: the first forward pass's oneDNN kernels and reordered
-# weights, the allocator's small blocks (benchmarks/denoise_memory.py --parts calibrate).
+# weights, the allocator's small blocks (benchmarks/denoise_memory.py --parts calibrate); and what
+# each further network of another shape or float format adds (its own kernels: measured 11-18 MiB
+# resident after a few windows of each shipped network).
 TILE_FIXED_BYTES = 32 * 2**20
+NETWORK_FIXED_BYTES = 16 * 2**20
 Aux = np.ndarray | tuple[np.ndarray, np.ndarray] | None
 # Radius of the window whose largest input value bounds each output value (at most the margin).
 BOUND_RADIUS = 8
@@ -226,6 +229,105 @@ def image_exposure(color: np.ndarray, max_bytes: float = DEFAULT_PASS_BYTES) -> 
                                             -(-height // blocks)), workers)
 
 
+class ChainRun:
+    """One network's chain (the module docstring) over one image, a window or a rectangle at a
+    time: what :func:`denoise_image` stitches, and what an ensemble computes member by member on
+    shared tiles (:func:`denoise.ensemble.denoise_combined`). Arguments as :func:`denoise_image`'s;
+    the skip test (``variance`` and ``skip_below``) runs when it is made. Use it as a context
+    manager: the model runs in eval mode under ``torch.inference_mode`` inside, its previous mode
+    restored after. ``windows``: the network windows run so far."""
+
+    def __init__(self, model: nn.Module, color: np.ndarray, aux: Aux = None, variance: np.ndarray | None = None,
+                 skip_below: float | None = None, max_bytes: float = DEFAULT_PASS_BYTES, flips: int = 1,
+                 exposure: float | None = None, normals_rotation: np.ndarray | None = None) -> None:
+        config = model.config
+        _check_inputs(config, color, aux, variance)
+        check_flips(flips)
+        if flips > 1 and config.aux_inputs:  # a mirrored image has mirrored normals: not modelled
+            raise ValueError("test-time flips need a model without albedo/normal inputs (flips 1 here)")
+        self.model, self.config, self.color, self.aux, self.variance = model, config, color, aux, variance
+        self.normals_rotation = normals_rotation
+        self.flips, self.max_bytes = flips, max_bytes
+        self.transfer = get_transfer(config.transfer)
+        self.scale = image_exposure(color, max_bytes) if exposure is None else exposure
+        self.align = alignment(config)
+        self.margin = receptive_radius(config)
+        self.radius = min(BOUND_RADIUS, self.margin)  # within the margin: tiles see the whole window
+        self.device = module_device(model)
+        self.skipping = variance is not None and skip_below is not None
+        self.region = noisy_region(color, variance, self.transfer, self.scale, skip_below, self.align,
+                                   max_bytes) if self.skipping else None
+        self.windows = 0
+        self._mode = torch.inference_mode()
+        self._was_training = False
+
+    def __enter__(self) -> ChainRun:
+        self._was_training = self.model.training
+        if self._was_training:  # (each switch walks every submodule: ~3 ms a call at 128^2 for a folded u-net)
+            self.model.eval()
+        self._mode.__enter__()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._mode.__exit__(*exc)
+        if self._was_training:
+            self.model.train()
+
+    def window(self, t: Tile) -> np.ndarray:
+        """The chain's output over ``t``'s window (hxwx3 float32 radiance); exact over its core
+        when the window has the network's margin and alignment (:mod:`denoise.tiling`)."""
+        config, transfer, scale, color, variance, aux = (self.config, self.transfer, self.scale, self.color,
+                                                         self.variance, self.aux)
+        self.windows += 1
+        h, w = t.wy1 - t.wy0, t.wx1 - t.wx0
+        rgb = _scaled(color[t.wy0:t.wy1, t.wx0:t.wx1], scale)
+        # filled part by part (no concatenation), each pixel's channels side by side as the folded
+        # nets read them (denoise.inference_net.padded_input: 1.5x faster from channels_last at 720p)
+        x = torch.empty(1, config.image_channels, h, w, memory_format=torch.channels_last)
+        encoded = transfer.forward(torch.from_numpy(rgb))
+        x[0, :3] = encoded.permute(2, 0, 1)
+        if aux is not None:
+            x[0, 3:9] = _aux_window(aux, t, self.normals_rotation).permute(2, 0, 1)
+        if config.noise_input:
+            var = None if variance is None else \
+                np.asarray(variance[t.wy0:t.wy1, t.wx0:t.wx1], np.float32) * np.float32(scale * scale)
+            x[0, config.noise_start:] = torch.from_numpy(
+                noise_channels(rgb, var, transfer, config.noise_radius, encoded)).permute(2, 0, 1)
+            del var
+        bound = neighbourhood_max(encoded, self.radius)
+        del rgb, encoded
+        y = flip_average(self.model, x.to(self.device, non_blocking=True), self.flips, self.align)[0].cpu()
+        del x  # (a GPU's output is back on the CPU here)
+        y = torch.minimum(torch.nan_to_num_(y, nan=0.0).clamp_(0.0, 1.0), bound, out=y)
+        del bound
+        y = transfer.inverse(y).permute(1, 2, 0).numpy()
+        return y if scale == 1.0 else np.divide(y, np.float32(scale), out=y)
+
+    def rect(self, y0: int, y1: int, x0: int, x1: int, core: Core) -> np.ndarray:
+        """The chain's output over the rectangle [y0:y1, x0:x1] (any corners) as :func:`denoise_image`
+        gives it there: the rectangle cut into cores of at most ``core`` px, each run in a window
+        with the network's margin taken from the whole image (the sanitised render outside the
+        skip test's noisy region). A new (y1-y0)x(x1-x0)x3 float32 array."""
+        height, width = self.color.shape[:2]
+        out = np.empty((y1 - y0, x1 - x0, 3), np.float32)
+        a, b, c, d = y0, y1, x0, x1
+        if self.skipping:
+            for rows in row_blocks(y1 - y0, x1 - x0, PASS_BYTES_PER_PIXEL, self.max_bytes):
+                out[rows] = sanitize(self.color[y0 + rows.start:y0 + rows.stop, x0:x1])
+            if self.region is None:
+                return out
+            ry0, ry1, rx0, rx1 = self.region
+            a, b, c, d = max(y0, ry0), min(y1, ry1), max(x0, rx0), min(x1, rx1)
+            if a >= b or c >= d:
+                return out
+        for t in plan_tiles(b - a, d - c, core, 0, self.align):
+            t = Tile(t.y0 + a, t.y1 + a, t.x0 + c, t.x1 + c, *window_span(t.y0 + a, t.y1 + a, height, self.margin, self.align),
+                     *window_span(t.x0 + c, t.x1 + c, width, self.margin, self.align))
+            out[t.y0 - y0:t.y1 - y0, t.x0 - x0:t.x1 - x0] = \
+                self.window(t)[t.y0 - t.wy0:t.y1 - t.wy0, t.x0 - t.wx0:t.x1 - t.wx0]
+        return out
+
+
 def denoise_image(model: nn.Module, color: np.ndarray, aux: Aux = None,
                   core: Core = 256, progress: Callable[[int, int], None] | None = None,
                   variance: np.ndarray | None = None, skip_below: float | None = None,
@@ -251,59 +353,15 @@ def denoise_image(model: nn.Module, color: np.ndarray, aux: Aux = None,
     (several models on one image), else computed here. The model runs in eval mode; its previous
     mode is restored. A model on a GPU gets each tile's input there; the rest runs on the CPU.
     """
-    config = model.config
-    _check_inputs(config, color, aux, variance)
-    check_flips(flips)
-    if flips > 1 and config.aux_inputs:  # a mirrored image has mirrored normals: not modelled
-        raise ValueError("test-time flips need a model without albedo/normal inputs (flips 1 here)")
-    transfer = get_transfer(config.transfer)
+    run = ChainRun(model, color, aux, variance, skip_below, max_bytes, flips, exposure, normals_rotation)
     height, width = color.shape[:2]
-    scale = image_exposure(color, max_bytes) if exposure is None else exposure
-    align = alignment(config)
-    radius = min(BOUND_RADIUS, receptive_radius(config))  # within the margin: tiles see the whole window
-    region = None
     out = None
-    if variance is not None and skip_below is not None:
-        region = noisy_region(color, variance, transfer, scale, skip_below, align, max_bytes)
+    if run.skipping:
         out = np.empty((height, width, 3), np.float32)
         for rows in row_blocks(height, width, PASS_BYTES_PER_PIXEL, max_bytes):
             out[rows] = sanitize(color[rows])
-        if region is None:
+        if run.region is None:
             return out
-
-    def net(t: Tile) -> np.ndarray:
-        h, w = t.wy1 - t.wy0, t.wx1 - t.wx0
-        rgb = _scaled(color[t.wy0:t.wy1, t.wx0:t.wx1], scale)
-        # filled part by part (no concatenation), each pixel's channels side by side as the folded
-        # nets read them (denoise.inference_net.padded_input: 1.5x faster from channels_last at 720p)
-        x = torch.empty(1, config.image_channels, h, w, memory_format=torch.channels_last)
-        encoded = transfer.forward(torch.from_numpy(rgb))
-        x[0, :3] = encoded.permute(2, 0, 1)
-        if aux is not None:
-            x[0, 3:9] = _aux_window(aux, t, normals_rotation).permute(2, 0, 1)
-        if config.noise_input:
-            var = None if variance is None else \
-                np.asarray(variance[t.wy0:t.wy1, t.wx0:t.wx1], np.float32) * np.float32(scale * scale)
-            x[0, config.noise_start:] = torch.from_numpy(
-                noise_channels(rgb, var, transfer, config.noise_radius, encoded)).permute(2, 0, 1)
-            del var
-        bound = neighbourhood_max(encoded, radius)
-        del rgb, encoded
-        y = flip_average(model, x.to(device, non_blocking=True), flips, align)[0].cpu()  # a GPU's back here
-        del x
-        y = torch.minimum(torch.nan_to_num_(y, nan=0.0).clamp_(0.0, 1.0), bound, out=y)
-        del bound
-        y = transfer.inverse(y).permute(1, 2, 0).numpy()
-        return y if scale == 1.0 else np.divide(y, np.float32(scale), out=y)
-
-    device = module_device(model)
-    was_training = model.training
-    if was_training:  # (each switch walks every submodule: ~3 ms a call at 128^2 for a folded u-net)
-        model.eval()
-    try:
-        with torch.inference_mode():
-            out = run_windows(net, height, width, core, receptive_radius(config), progress, align, out, region)
-    finally:
-        if was_training:
-            model.train()
+    with run:
+        out = run_windows(run.window, height, width, core, run.margin, progress, run.align, out, run.region)
     return out.astype(np.float32, copy=False)

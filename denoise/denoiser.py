@@ -18,13 +18,13 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from denoise.allocator import fix_mmap_threshold, use_huge_pages
+from denoise.allocator import fix_mmap_threshold, release_free_memory, use_huge_pages
 from imaging.blocks import block_rows, parallel_map, pass_workers
 from imaging.errors import DenoiserError
 from imaging.hashing import file_sha256
-from denoise.tiling import core_for_budget, cores_for_budget
+from denoise.tiling import band_cores, core_for_budget, cores_for_budget
 from denoise.energy import EnergySettings, correct_in_place
-from denoise.ensemble import combine_in_place
+from denoise.ensemble import DEFAULT_RADIUS, denoise_combined
 from denoise.image_noise import NoiseStats, noise_stats
 from denoise.noise_guard import DEFAULT_STRENGTH, guard_in_place, strength_for
 from model.registry import SEPARATOR, Choice, Selection, range_suffix, registry
@@ -34,6 +34,7 @@ if TYPE_CHECKING:
     from rendering.render import RenderResult
 
 DEFAULT_MAX_MEMORY_MB = 1024
+OUTPUT_BYTES_PER_PIXEL = 12  # a network's HxWx3 float32 output
 ModelArg = str | Path | Sequence[str | Path] | None  # what ``Denoiser(...)`` and ``--model`` take
 
 
@@ -125,6 +126,17 @@ class Network:
         return spp is not None and self.min_spp <= spp and (not self.max_spp or spp <= self.max_spp)
 
 
+@dataclass(frozen=True)
+class EnsemblePlan:
+    """How an ensemble's members denoise an image (:meth:`Denoiser.ensemble_plan`): in bands of
+    ``rows`` rows, each member on its own tiles (``cores``, (rows, columns) per member), their
+    outputs combined within ``combine_bytes`` of scratch."""
+
+    rows: int
+    cores: tuple[tuple[int, int], ...]
+    combine_bytes: float
+
+
 @dataclass
 class DenoiseResult:
     """``image``: HxWx3 float32 linear radiance >= 0; counts of sanitised input values."""
@@ -208,12 +220,15 @@ class Denoiser:
     render's spp (:meth:`active`). ``path``, ``model``, ``config``, ``meta``, ``net`` and ``dtype``
     are the first network's; ``members`` holds every network loaded, each once.
     ``max_memory_mb`` bounds the scratch memory of :meth:`denoise_array` as OIDN's
-    ``maxMemoryMB`` does: the memory it uses beyond the input and output images (the output,
-    the guard's weight map and, asked for, the network's output; an ensemble also holds each
-    further model's output and a weight per model and pixel). Every step works within it:
-    counting invalid values and the exposure in row blocks, the network on tiles planned with
-    :func:`denoise.chain.tile_bytes_per_pixel`, the noise guard on tiles and row blocks
-    (:func:`denoise.noise_guard.guard_in_place`). Creating a Denoiser fixes glibc's mmap
+    ``maxMemoryMB`` does: the memory it uses beyond the input images and the output (asked for,
+    the network's output is one more image). Every step works within it: counting invalid values
+    and the exposure in row blocks, the network on tiles planned with
+    :func:`denoise.chain.tile_bytes_per_pixel` beside the networks' fixed cost
+    (:meth:`fixed_bytes`), an ensemble in bands whose members' outputs and weights count against
+    the budget (:meth:`ensemble_plan`), the noise guard on tiles and row blocks
+    (:func:`denoise.noise_guard.guard_in_place`) beside its weight map, the energy correction in
+    row blocks; freed heap memory is handed back between the steps
+    (:func:`denoise.allocator.release_free_memory`). Creating a Denoiser fixes glibc's mmap
     threshold for the process (:mod:`denoise.allocator`): without it freed tile temporaries stay
     resident and the process peaks at about twice that; with ``huge_pages`` it also asks torch for
     transparent huge pages (:func:`denoise.allocator.use_huge_pages`: a fresh mapping faults per 2 MiB,
@@ -366,6 +381,15 @@ class Denoiser:
         m = member or self.members[0]
         return tile_bytes_per_pixel(m.config, self.optimize, m.dtype.itemsize, self.flips)
 
+    def fixed_bytes(self, members: Sequence[Network]) -> float:
+        """The fixed cost of running ``members`` on tiles, beside their pixels: :data:`denoise.chain.TILE_FIXED_BYTES`,
+        and :data:`denoise.chain.NETWORK_FIXED_BYTES` for each further different network among them
+        (its config and float format: oneDNN keeps each one's kernels, shared by networks of the
+        same shape)."""
+        from denoise.chain import NETWORK_FIXED_BYTES, TILE_FIXED_BYTES
+
+        return TILE_FIXED_BYTES + NETWORK_FIXED_BYTES * (len({(repr(m.config), str(m.dtype)) for m in members}) - 1)
+
     def core_size(self, member: Network | None = None) -> int:
         """Tile core side that keeps one tile within ``max_memory_mb``: its window's pixels at
         :meth:`bytes_per_pixel`, plus the fixed cost of a forward pass."""
@@ -385,6 +409,48 @@ class Denoiser:
         m = member or self.members[0]
         return cores_for_budget(height, width, self.bytes_per_pixel(m), self.max_bytes - TILE_FIXED_BYTES,
                                 m.margin, alignment(m.config), minimum=16)
+
+    def ensemble_plan(self, height: int, width: int, members: Sequence[Network], weighted: bool) -> EnsemblePlan:
+        """How ``members`` (several) denoise an HxW image within ``max_memory_mb``
+        (:func:`denoise.ensemble.denoise_combined`): in full-width bands, each member on its own
+        tiles over a band (and the combination's context rows, ``weighted``: the outputs are
+        weighted by their estimated error), then combined there. Every member's output over the band
+        is held (beside the result; one band of the whole image: all but the first, which becomes
+        the result), and while they are combined their weights; the tiles get what that and the
+        networks' fixed cost (:meth:`fixed_bytes`) leave of the budget. Of the band heights tried
+        (the whole image, multiples of the members' alignment) the one that processes the fewest
+        window pixels, each member's weighted by its :meth:`bytes_per_pixel`; where none fits, the
+        thinnest band and the members' smallest tiles."""
+        from model.architectures import alignment
+        from denoise.ensemble import context_rows, weight_bytes_per_pixel
+
+        k, align = len(members), max(alignment(m.config) for m in members)
+        context = context_rows(weighted, align)
+        fixed = self.fixed_bytes(members)
+        steps = (1, 2, 3, 4, 6, 8, 12, 16, 24, 32, 48, 64, 96, 128)
+        candidates = [height] + [align * j for j in steps if align * j < height]
+        best: tuple[float, EnsemblePlan] | None = None
+        for rows in candidates:
+            rect = min(height, rows + 2 * context)
+            held = OUTPUT_BYTES_PER_PIXEL * (k - 1 if rows >= height else k) * rect * width
+            combine_bytes = self.max_bytes - fixed - held - (4 * k * rect * width if weighted else 0)
+            if combine_bytes < weight_bytes_per_pixel(k) * (16 + 2 * DEFAULT_RADIUS) ** 2:
+                continue
+            work, cores = 0.0, []
+            for m in members:
+                bpp = self.bytes_per_pixel(m)
+                plan = band_cores(rect, height, width, bpp, self.max_bytes - fixed - held, m.margin,
+                                  alignment(m.config))
+                if plan is None:
+                    break
+                cores.append(plan[0])
+                work += bpp * plan[1] * -(-height // rows)
+            else:
+                if best is None or work < best[0]:
+                    best = (work, EnsemblePlan(rows, tuple(cores), combine_bytes))
+        if best is not None:
+            return best[1]
+        return EnsemblePlan(min(height, align), tuple((align, align) for _ in members), self.max_bytes / 4)
 
     def denoise_array(self, rgb: np.ndarray, albedo: np.ndarray | None = None,
                       normals: np.ndarray | None = None, variance: np.ndarray | None = None,
@@ -412,7 +478,7 @@ class Denoiser:
         """
         import torch
 
-        from denoise.chain import denoise_image, image_exposure
+        from denoise.chain import ChainRun, denoise_image, image_exposure
 
         rgb = np.asarray(rgb)
         if rgb.ndim != 3 or rgb.shape[2] != 3 or min(rgb.shape[:2]) < 1:
@@ -440,34 +506,45 @@ class Denoiser:
         count = [0]
         exposure = image_exposure(rgb, self.max_bytes)  # once for every member and the energy correction
 
-        def run(member: Network) -> np.ndarray:
+        def rotation(member: Network) -> np.ndarray | None:
             camera = member.config.aux_inputs and member.config.aux_normals == "camera"
-            return denoise_image(member.net, rgb, aux, self.cores(height, width, member),
-                                 progress=lambda n, total: count.__setitem__(0, count[0] + (n == total) * total),
-                                 variance=variance, skip_below=self.skip_below, max_bytes=self.max_bytes,
-                                 flips=self.flips, exposure=exposure,
-                                 normals_rotation=to_camera if camera else None)
+            return to_camera if camera else None
 
         noise = noise_stats(rgb)
+        release_free_memory()  # each step's freed blocks leave the resident set before the next one
         members = self.active(spp, noise.level)
         choice = self.choice(spp).name
         notes = self.notes(spp, choice, members, noise, pixel_filter)
-        out = run(members[0])
-        if len(members) > 1:  # each further output is one more image beside ``out``
-            combine_in_place(rgb, [out, *(run(m) for m in members[1:])], variance, self.max_bytes)
+        if len(members) == 1:
+            out = denoise_image(members[0].net, rgb, aux, self.cores(height, width, members[0]),
+                                progress=lambda n, total: count.__setitem__(0, count[0] + (n == total) * total),
+                                variance=variance, skip_below=self.skip_below, max_bytes=self.max_bytes,
+                                flips=self.flips, exposure=exposure, normals_rotation=rotation(members[0]))
+        else:  # band by band: no further member's output is held whole unless the budget allows
+            plan = self.ensemble_plan(height, width, members, variance is not None)
+            runs = [ChainRun(m.net, rgb, aux, variance, self.skip_below, self.max_bytes, self.flips, exposure,
+                             rotation(m)) for m in members]
+            out = denoise_combined(runs, rgb, variance, plan.rows, plan.cores, plan.combine_bytes)
+            count[0] = sum(r.windows for r in runs)
+        release_free_memory()
         network = None
         if keep_network:  # the guard and the energy correction change ``out`` in place
             network = out.copy() if variance is not None or self.energy is not None else out
+        # what the passes after the networks may use: the budget less what the networks left resident
+        # (their kernels) and the guard's weight map (scratch too: ``denoise`` never shows it)
+        after = max(self.max_bytes / 8,  # (a budget smaller than that is not kept anyway)
+                    self.max_bytes - self.fixed_bytes(members) - (4 * height * width if variance is not None else 0))
         weight = weights = None
         if variance is not None:
             if strength is None:
                 strength = strength_for(spp) if spp is not None else DEFAULT_STRENGTH
             weights = np.empty((height, width, 1), np.float32)
-            guard_in_place(rgb, out, variance, weights, self.max_bytes, strength=strength, workers=workers)
+            guard_in_place(rgb, out, variance, weights, after, strength=strength, workers=workers)
             weight = float(weights.mean())
+            release_free_memory()
         factor = None
         if self.energy is not None:
-            factor = correct_in_place(rgb, out, self.max_bytes, exposure, self.energy, workers)
+            factor = correct_in_place(rgb, out, after, exposure, self.energy, workers)
         return DenoiseResult(out, nonfinite, negative, time.perf_counter() - start, count[0], weight,
                              None if weights is None else weights[:, :, 0], factor, network,
                              tuple(m.path.stem for m in members), choice, notes, noise,

@@ -18,18 +18,25 @@ Without a variance (a single EXR) the outputs are averaged.
 eval scenes; power 2 rather than 1 because where renders have converged (``benchmarks/noise_guard.py``'s
 converged regime) inverse errors still let the worse output in across a sharp edge (the teapot on
 black: 0.8-1.0 dB lower after the guard), where their squares keep it out. Window sums are exact per tile (:func:`denoise.box_filter.box_mean_2d`), so
-:func:`combine_in_place` gives the whole-image result bit for bit within any memory bound.
+:func:`combine_in_place` gives the whole-image result bit for bit within any memory bound, and
+:func:`denoise_combined` runs the networks and combines their outputs tile by tile: no member's
+output is ever held whole.
 """
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from contextlib import ExitStack
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from imaging.blocks import row_blocks
 from denoise.box_filter import box_mean_2d
-from denoise.tiling import Tile, core_for_budget, run_windows
+from denoise.tiling import Core, Tile, core_for_budget, run_windows
 from denoise.noise_guard import channel_sum, clean_render
+
+if TYPE_CHECKING:
+    from denoise.chain import ChainRun
 
 DEFAULT_RADIUS = 3  # window 7x7 (benchmarks/ensemble.py)
 DEFAULT_LAMBDA = 0.3  # T_k + lam * V (benchmarks/ensemble.py)
@@ -155,3 +162,43 @@ def combine_in_place(noisy: np.ndarray, outputs: Sequence[np.ndarray], variance:
                           radius, out=np.empty((height, width, k), np.float32))
     for rows in row_blocks(height, width, COMBINE_BYTES_PER_PIXEL, max_bytes):
         first[rows] = weighted_sum([o[rows] for o in outputs], weights[rows])
+
+
+def context_rows(weighted: bool, align: int, radius: int = DEFAULT_RADIUS) -> int:
+    """Rows of the members' outputs that :func:`denoise_combined` computes beyond each band: the
+    weights' window radius where the outputs are weighted (a variance is given), none where they
+    are averaged; rounded up to a multiple of ``align``, so that every band's rows start on the
+    networks' grid."""
+    return -(-radius // align) * align if weighted else 0
+
+
+def denoise_combined(runs: Sequence[ChainRun], noisy: np.ndarray, variance: np.ndarray | None, rows: int,
+                     cores: Sequence[Core], combine_bytes: float, radius: int = DEFAULT_RADIUS,
+                     lam: float = DEFAULT_LAMBDA, power: float = DEFAULT_POWER) -> np.ndarray:
+    """:func:`combine` of the chains' outputs (:class:`denoise.chain.ChainRun`, one per network, of
+    the HxWx3 render ``noisy``), a band of ``rows`` rows at a time (a multiple of every chain's
+    alignment): each chain's output over the band and :func:`context_rows` rows beyond it
+    (:meth:`ChainRun.rect` on its own tiles, ``cores``, one per chain), combined there by
+    :func:`combine_in_place` within ``combine_bytes`` of scratch, of which the band is kept. The
+    same as combining the whole-image outputs; only one band's outputs are held at a time
+    (:meth:`denoise.denoiser.Denoiser.ensemble_plan` sizes the bands; one band of the whole image
+    holds every output whole, the first of which is returned). Returns a new HxWx3 float32 image."""
+    height, width = noisy.shape[:2]
+    context = context_rows(variance is not None, max(run.align for run in runs), radius)
+    with ExitStack() as stack:
+        for run in runs:
+            stack.enter_context(run)
+        if rows >= height:  # one band: the first output becomes the result
+            outputs = [run.rect(0, height, 0, width, core) for run, core in zip(runs, cores)]
+            combine_in_place(noisy, outputs, variance, combine_bytes, radius, lam, power)
+            return outputs[0]
+        out = np.empty((height, width, 3), np.float32)
+        for y0 in range(0, height, rows):
+            y1 = min(height, y0 + rows)
+            r0, r1 = max(0, y0 - context), min(height, y1 + context)
+            outputs = [run.rect(r0, r1, 0, width, core) for run, core in zip(runs, cores)]
+            combine_in_place(noisy[r0:r1], outputs, None if variance is None else variance[r0:r1], combine_bytes,
+                             radius, lam, power)
+            out[y0:y1] = outputs[0][y0 - r0:y1 - r0]
+            del outputs
+    return out

@@ -119,6 +119,10 @@ class _AffineReLU(nn.Module):
             return torch.addcmul(self.shift, x, self.scale).relu_()
         return torch.addcmul(self.shift, x, self.scale, out=scratch_view(scratch, *x.shape)).relu_()
 
+    def in_place(self, x: torch.Tensor) -> torch.Tensor:
+        """``relu(scale*x + shift)`` written over ``x`` (the same values as :meth:`forward`)."""
+        return torch.addcmul(self.shift, x, self.scale, out=x).relu_()
+
 
 DEAD_SCALE = 1e-12  # |s| below this: the channel counts as constant (s*x is lost in rounding)
 

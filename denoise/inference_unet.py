@@ -17,7 +17,8 @@ encoder/decoder shape allows:
 * **Nearest upsampling written in place** through a strided view of the buffer (one pass).
 * **channels_last** activations and weights.
 * **One scratch for the clamps** (:func:`denoise.inference_net.scratch_view`): every clamp of a
-  forward pass, and the tail's affine map, write into one flat buffer sized for the largest.
+  forward pass writes into one flat buffer sized for the largest; the tail's BN-ReLU runs in place
+  on level 0's buffer, which nothing reads after it.
 * **The full-resolution head** (``head`` > 0) runs as two plain convs on channels_last input.
 * **The predicted filter** (``kernel`` > 0): its coefficients' conv1x1 reads the tail's BN-ReLU
   output like the tail; the filter runs in float32 a band of rows at a time, each band's
@@ -262,11 +263,15 @@ class InferenceUNet(nn.Module):
         return x if buffers is None else x + self.aux_levels[level](buffers[level])
 
     def forward(self, image: torch.Tensor) -> torch.Tensor:
+        # each tensor is dropped once the rest of the pass no longer needs it: a tile's peak is
+        # what is alive at once (model.architectures.live_channels_per_pixel counts it)
         h, w = image.shape[-2:]
         if self.config.aux_inputs and self.config.aux_prefilter != "none":
             image = prefiltered(image)
         padded, raw = unshuffled_input(image, alignment(self.config), self.dtype)
         buffers = self._level_buffers(padded, raw)
+        net_in = None if self.head is None else padded[:, :h, :w].permute(0, 3, 1, 2)
+        del padded  # only the head and the levels' buffers read it
         x = self.stem(raw)
         scratch = torch.empty(self.scratch_elements(x.shape[0], *x.shape[-2:]), dtype=self.dtype)
         levels = []
@@ -276,21 +281,26 @@ class InferenceUNet(nn.Module):
             e = self.enc_width[i]
             x = down.conv(F.avg_pool2d(down.clamp(buf[:, :e], scratch), 2))
         x = self._bottom(self._inject(x, len(self.down), buffers), scratch)
+        del buffers
         for i in reversed(range(len(levels))):
-            x = self._decode(x, levels[i], i, scratch)
-        features = self.tail_pre(x, scratch)
+            x = self._decode(x, levels.pop(), i, scratch)
+        del scratch
+        features = self.tail_pre.in_place(x)  # level 0's buffer is read no more
+        del x
         y = self.tail(features)
         coefficients = None if self.kernel is None else self.kernel(features)
         if self.aux_kernel is not None:
             from_features, from_aux, out = self.aux_kernel
             coefficients += out(from_features(features).add_(from_aux(raw)).relu_())
+        del features
         y += self.skip(raw)
+        del raw
         out = shuffled_output(y, h, w)
+        del y
         out = out + image[:, :3] if self.config.output == "residual" else out
         if coefficients is not None:
             add_kernel_(out, image[:, :3], coefficients, self.config.kernel, scale=2)
-        if self.head is None:
+        if net_in is None:
             return out
-        net_in = padded[:, :h, :w].permute(0, 3, 1, 2)
         both = torch.cat([out, net_in], dim=1).contiguous(memory_format=torch.channels_last)
         return out + self.head(both.to(self.dtype)).float()

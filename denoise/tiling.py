@@ -56,11 +56,11 @@ def plan_tiles(height: int, width: int, core: Core, margin: int, align: int = 1)
     xs = _cuts(width, max(align, core_w - core_w % align), align)
     for y0, y1 in zip(ys[:-1], ys[1:]):
         for x0, x1 in zip(xs[:-1], xs[1:]):
-            yield Tile(y0, y1, x0, x1, *_window(y0, y1, height, margin, align),
-                       *_window(x0, x1, width, margin, align))
+            yield Tile(y0, y1, x0, x1, *window_span(y0, y1, height, margin, align),
+                       *window_span(x0, x1, width, margin, align))
 
 
-def _window(lo: int, hi: int, size: int, margin: int, align: int) -> tuple[int, int]:
+def window_span(lo: int, hi: int, size: int, margin: int, align: int) -> tuple[int, int]:
     """Window [start, end) of the core [lo, hi) along an axis of ``size`` pixels: ``margin`` more
     on each side, widened to multiples of ``align`` (the end stays ``size`` where it reaches it)."""
     start = max(0, lo - margin) // align * align
@@ -87,7 +87,7 @@ def _axis_plans(size: int, margin: int, align: int, minimum: int) -> list[tuple[
         if core in plans:
             continue
         cuts = _cuts(size, core, align)
-        windows = [b - a for a, b in (_window(lo, hi, size, margin, align) for lo, hi in zip(cuts[:-1], cuts[1:]))]
+        windows = [b - a for a, b in (window_span(lo, hi, size, margin, align) for lo, hi in zip(cuts[:-1], cuts[1:]))]
         plans[core] = (core, max(windows), sum(windows))
     return sorted(plans.values(), key=lambda p: -p[0])
 
@@ -111,6 +111,42 @@ def cores_for_budget(height: int, width: int, bytes_per_pixel: float, max_bytes:
     if best is None:
         return rows[-1][0], cols[-1][0]
     return best[1], best[2]
+
+
+def _band_row_plans(rows: int, height: int, margin: int, align: int, minimum: int) -> list[tuple[int, int, int]]:
+    """:func:`_axis_plans` for cores cut across a band of ``rows`` rows that starts on a multiple of
+    ``align`` anywhere in an image of ``height`` rows (its windows take their margins from the image):
+    per core, its largest window and a bound of the sum of its windows. The band that is the whole
+    image: the exact plans."""
+    if rows >= height:
+        return _axis_plans(height, margin, align, minimum)
+    reach = _round_up(margin, align)  # an aligned core's window reaches this far on each side
+    plans: dict[int, tuple[int, int, int]] = {}
+    for parts in range(1, max(1, -(-rows // max(minimum, align))) + 1):
+        core = max(align, _round_up(-(-rows // parts), align))
+        if core in plans:
+            continue
+        window = min(height, core + 2 * reach)
+        plans[core] = (core, window, -(-rows // core) * window)
+    return sorted(plans.values(), key=lambda p: -p[0])
+
+
+def band_cores(rows: int, height: int, width: int, bytes_per_pixel: float, max_bytes: float, margin: int,
+               align: int = 1, minimum: int = 16) -> tuple[tuple[int, int], int] | None:
+    """:func:`cores_for_budget` for a full-width band of ``rows`` rows of an HxW image, starting on a
+    multiple of ``align`` (the whole image where ``rows`` >= H): the (rows, columns) core whose
+    windows fit ``max_bytes`` with the fewest window pixels, and that bound of its window pixels;
+    None where no plan fits."""
+    pixels = max_bytes / max(bytes_per_pixel, 1e-9)
+    best: tuple[int, int, int] | None = None
+    cols = _axis_plans(width, margin, align, minimum)
+    for core_h, window_h, sum_h in _band_row_plans(rows, height, margin, align, minimum):
+        fitting = [(sum_w, core_w) for core_w, window_w, sum_w in cols if window_h * window_w <= pixels]
+        if fitting:
+            sum_w, core_w = min(fitting, key=lambda c: (c[0], -c[1]))
+            if best is None or sum_h * sum_w < best[0]:
+                best = (sum_h * sum_w, core_h, core_w)
+    return None if best is None else ((best[1], best[2]), best[0])
 
 
 def run_tiled(
@@ -139,8 +175,8 @@ def run_windows(
     """
     y0, y1, x0, x1 = region if region is not None else (0, height, 0, width)
     tiles = [Tile(t.y0 + y0, t.y1 + y0, t.x0 + x0, t.x1 + x0,
-                  *_window(t.y0 + y0, t.y1 + y0, height, margin, align),
-                  *_window(t.x0 + x0, t.x1 + x0, width, margin, align))
+                  *window_span(t.y0 + y0, t.y1 + y0, height, margin, align),
+                  *window_span(t.x0 + x0, t.x1 + x0, width, margin, align))
              for t in plan_tiles(y1 - y0, x1 - x0, core, 0, align)]
     step = max(1, workers)
     for start in range(0, len(tiles), step):

@@ -121,6 +121,21 @@ class ExrFile:
             out[:, :, c] = planes[name]
         return out
 
+    def take_image(self, layer: Layer, channels: int | None = None) -> np.ndarray:
+        """:meth:`image` of ``layer`` (a scalar layer repeated to ``channels``), which from then on
+        also holds the layer's float16 and float32 channels in this file: they become
+        :class:`ImagePlane` s of it (converted back exactly when written), so their pixels are in
+        memory once, not twice. Only one layer's float32 copy is made at a time beside the file."""
+        image = self.image(layer)
+        if channels is not None and image.shape[2] == 1 and channels > 1:
+            image = np.repeat(image, channels, axis=2)
+        planes = self.parts[layer.part].channels
+        for c, name in enumerate(layer.channels):
+            dtype = np.dtype(getattr(planes[name], "dtype", None))
+            if dtype in (np.dtype(np.float16), np.dtype(np.float32)):
+                planes[name] = ImagePlane(image, c, dtype)
+        return image
+
     def is_half(self, layer: Layer) -> bool:
         return self.parts[layer.part].channels[layer.channels[0]].dtype == np.float16
 

@@ -43,6 +43,8 @@ def count_parameters(model: nn.Module) -> int:
 # threshold), and for the training modules
 # their BatchNorm copies and concatenations. A bound of what benchmarks/denoise_memory.py --parts
 # calibrate measures (results/denoise_memory.json).
+# Measured on the shipped networks in a warm process (windows of 544x672 to 720x960, float32 and
+# bfloat16): 0.81-0.99 of the folded estimate.
 FOLDED_ALLOWANCE = 1.1
 MODULE_ALLOWANCE = 1.6
 
@@ -52,11 +54,22 @@ def inference_bytes_per_pixel(config: ModelConfig, folded: bool = True, itemsize
     (:data:`denoise.chain.TILE_FIXED_BYTES`): the folded network's live tensors
     (:func:`live_channels_per_pixel`) times the measured allowance of the folded network
     (``folded``) or of the training module. ``itemsize``: bytes per value of the folded network's
-    activations (2 in bfloat16, :mod:`denoise.precision`); its input image stays float32."""
+    activations (2 in bfloat16, :mod:`denoise.precision`); the channels of
+    :func:`float32_channels_per_pixel` stay float32."""
     live = live_channels_per_pixel(config)
-    cimg = config.image_channels
+    wide = float32_channels_per_pixel(config)
     itemsize = itemsize if folded else 4
-    return (4.0 * cimg + itemsize * (live - cimg)) * (FOLDED_ALLOWANCE if folded else MODULE_ALLOWANCE)
+    return (4.0 * wide + itemsize * (live - wide)) * (FOLDED_ALLOWANCE if folded else MODULE_ALLOWANCE)
+
+
+def float32_channels_per_pixel(config: ModelConfig) -> float:
+    """Of :func:`live_channels_per_pixel`, those that stay float32 whatever the network computes
+    in: the input image; for the multi-scale nets also the output's shuffled copy and its sum with
+    the input, the chain's output bound beside the network (:func:`denoise.chain.neighbourhood_max`)
+    and, with a head, the padded network input it reads."""
+    if config.multiscale:
+        return config.image_channels + 7 + (config.in_channels if config.head else 0)
+    return config.image_channels
 
 
 def live_channels_per_pixel(config: ModelConfig) -> float:
@@ -84,7 +97,8 @@ def _unet_live_channels(config: ModelConfig) -> float:
     n, layers, cimg = config.levels, config.layers, config.image_channels
     share = [0.25 ** (i + 1) for i in range(n + 1)]
     inputs = cimg + 3 * config.in_channels + 12  # network_input, its padded copy, the unshuffled input
-    base = cimg + config.in_channels  # the input and the unshuffled input, kept to the end
+    # the input and the unshuffled input, kept until the skip conv (the padded input too for the head)
+    base = cimg + config.in_channels * (2 if config.head else 1)
     if config.arch == "dense_unet":
         enc = [plan.width[i] + layers * plan.growth[i] for i in range(n + 1)]  # enc[n]: the bottom block
         kept = [enc[i] + plan.width[i] + layers * plan.growth[i] for i in range(n)] + [enc[n]]
@@ -92,20 +106,21 @@ def _unet_live_channels(config: ModelConfig) -> float:
     else:
         kept = plan.width[:n] + [plan.width[n]]  # the encoder outputs kept for the skips, the bottom
         busy = [2 * plan.width[i] * 3 + plan.mid[i] for i in range(n + 1)]  # upsampled, concatenated, x, clamp
-    buffers = sum(c * s for c, s in zip(kept, share))
+    body = base + sum(c * s for c, s in zip(kept, share)) + max(b * s for b, s in zip(busy, share))
     taps = config.kernel_taps  # the predicted filter's coefficients per pixel
     mode = config.aux_mode if config.aux_inputs else None
     if mode == "levels":  # the buffers at every level, kept from the start (model.aux_input)
-        buffers += 4 * AUX_CHANNELS * share[0] + AUX_CHANNELS * sum(share[1:])
+        body += 4 * AUX_CHANNELS * share[0] + AUX_CHANNELS * sum(share[1:])
     branch = 2 * KERNEL_HIDDEN + 4 * taps if mode == "kernel" else 0  # its hidden layer's two parts, output
-    temporaries = max(max(b * s for b, s in zip(busy, share)),  # the tail: BN-ReLU copy, two 12-channel
-                      (kept[0] + 24 + 4 * taps + branch) * share[0] + 6)  # convs, the coefficients, output
+    # the tail, the other levels dropped: level 0's buffer and its BN-ReLU copy, two 12-channel convs
+    # and the coefficients at half resolution (and the kernel branch's), the output and its sum with the input
+    tail = base + (2 * kept[0] + 24 + 4 * taps + branch) * share[0] + 6
     # the prefilter: the filtered copy of the input beside it, and its full-resolution temporaries
     prefilter = 2 * cimg + 6 * AUX_CHANNELS if config.aux_inputs and config.aux_prefilter != "none" else 0
     # the head: the output, its input (output and network input, concatenated and a channels_last
     # copy), its hidden channels and its output, beside the network input and the output
-    head = cimg + config.in_channels + 3 + 2 * (3 + config.in_channels) + config.head + 3 if config.head else 0
-    # the filter: the output and its coefficients at half resolution (model.unet.add_kernel_ works a
+    head = base + 3 + 2 * (3 + config.in_channels) + config.head + 3 if config.head else 0
+    # the filter: the outputs and the coefficients at half resolution (model.unet.add_kernel_ works a
     # band of rows at a time: its temporaries are a few rows')
-    kernel = base + 3 + taps * share[0] * 4 if taps else 0
-    return max(inputs, base + buffers + temporaries, head, kernel, prefilter)
+    kernel = cimg + 6 + taps * share[0] * 4 if taps else 0
+    return max(inputs, body, tail, head, kernel, prefilter)

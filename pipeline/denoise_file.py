@@ -105,8 +105,7 @@ def _variance(exr: ExrFile, color: Layer, name: str | None) -> tuple[np.ndarray 
         layer = find_aux_layer(exr, VARIANCE_WORDS, color, ("rgb", "scalar"))
         if layer is None:
             return None, None
-    var = exr.image(layer)
-    return (np.repeat(var, 3, axis=2) if var.shape[2] == 1 else var), layer.name
+    return exr.take_image(layer, 3), layer.name
 
 
 def read_input(path: str | Path, layer: str | None = None, variance_layer: str | None = None,
@@ -123,10 +122,12 @@ def read_input(path: str | Path, layer: str | None = None, variance_layer: str |
     color = pick_color_layer(exr, layer)
     aux = {key: find_aux_layer(exr, words, color, ("rgb", "xyz"))
            for key, words in (("albedo", ALBEDO_WORDS), ("normals", NORMAL_WORDS))}
+    # each layer's pixels held once: the file's channels become views of the arrays made here
+    rgb = exr.take_image(color)
+    albedo, normals = (exr.take_image(aux[k]) if aux[k] else None for k in ("albedo", "normals"))
     variance, var_name = _variance(exr, color, variance_layer)
-    return InputImage(str(path), exr.image(color), exr, color,
-                      *(exr.image(aux[k]) if aux[k] else None for k in ("albedo", "normals")),
-                      variance=variance, variance_layer=var_name, spp=_spp_attribute(exr, color.part))
+    return InputImage(str(path), rgb, exr, color, albedo, normals, variance=variance, variance_layer=var_name,
+                      spp=_spp_attribute(exr, color.part))
 
 
 def combine_halves(a: InputImage, b: InputImage, max_bytes: float = 64 * 2**20) -> InputImage:

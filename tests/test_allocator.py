@@ -73,3 +73,31 @@ def test_use_huge_pages_backs_large_torch_blocks(preset: str | None, ask: str) -
         assert result["huge_kb"] >= 8 * 1024  # most of the 16 MiB block (its 2 MiB-aligned part)
     elif "[madvise]" in thp.read_text():  # (with "always" every large block gets them anyway)
         assert result["huge_kb"] < 8 * 1024
+
+
+_TRIM_CHILD = """
+import json
+import numpy as np
+from denoise.allocator import fix_mmap_threshold, release_free_memory
+
+def rss():
+    for line in open("/proc/self/status"):
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) * 1024
+
+fix_mmap_threshold()
+blocks = [np.ones(512 * 2**10 // 8) for _ in range(200)]  # 100 MiB of heap blocks, touched
+last = blocks[-1]
+del blocks  # freed, but the last block keeps the heap's top: the freed space stays resident
+before = rss()
+released = release_free_memory()
+print(json.dumps({"released": released, "released_mb": (before - rss()) / 2**20}))
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc and /proc")
+def test_release_free_memory_hands_back_the_heaps_gaps() -> None:
+    proc = subprocess.run([sys.executable, "-c", _TRIM_CHILD], capture_output=True, text=True, check=True,
+                          cwd=Path(__file__).resolve().parents[1])
+    m = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert m["released"] is True and m["released_mb"] >= 80, m

@@ -13,8 +13,8 @@ import torch
 from model.checkpoint import save_checkpoint
 from model.config import PRESETS, ModelConfig
 from denoise.flips import FLIPS, check_flips
-from denoise.chain import (BOUND_RADIUS, denoise_image, flip_average, log_average_luminance, neighbourhood_max,
-                         noisy_region)
+from denoise.chain import (BOUND_RADIUS, ChainRun, denoise_image, flip_average, log_average_luminance,
+                           neighbourhood_max, noisy_region)
 from model.architectures import alignment, build_model
 from model.transfer import HDR_MAX, get_transfer
 
@@ -233,3 +233,21 @@ def test_log_average_luminance_on_threads_is_the_serial_one(rows: int, workers: 
     img[3, 4] = np.nan
     img[9, 1, 2] = np.inf
     assert log_average_luminance(img, rows, workers) == log_average_luminance(img, rows, 1)
+
+
+@pytest.mark.parametrize("skip", [None, 1e-3])
+def test_a_rectangle_of_the_chain_is_that_part_of_the_whole_image(skip: float | None) -> None:
+    """ChainRun.rect on any rectangle, cut into any cores: the whole image's output there (margins
+    from the whole image, the skip test's region and the sanitised render outside it)."""
+    model = build_model(ModelConfig(arch="dense_unet", layers=1, growth=4, init_features=8, levels=2)).eval()
+    rng = np.random.default_rng(5)
+    color = rng.gamma(2.0, 0.3, (70, 90, 3)).astype(np.float32)
+    variance = np.full_like(color, 1e-2)
+    variance[:, :64] = 0.0  # a clean 64-px cell column the skip test leaves out
+    whole = denoise_image(model, color, core=4096, variance=variance, skip_below=skip)
+    run = ChainRun(model, color, variance=variance, skip_below=skip)
+    assert run.region == (None if skip is None else (0, 70, 64, 90))
+    with run:
+        for (y0, y1, x0, x1), core in [((0, 70, 0, 90), (16, 16)), ((13, 45, 5, 77), (8, 24)), ((60, 70, 0, 39), 4)]:
+            np.testing.assert_allclose(run.rect(y0, y1, x0, x1, core), whole[y0:y1, x0:x1], rtol=1e-4, atol=1e-5)
+    assert run.windows > 0

@@ -3,6 +3,8 @@ two halves, a variance layer; output in the input's layout or plain RGB."""
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -18,6 +20,7 @@ from pipeline.denoise_file import combine_halves, read_input
 from denoise.noise_guard import strength_for
 from tests.test_denoiser import write_tiny_checkpoint
 from tests.test_exr_layers import blender, mitsuba_aov, multipart, planes
+from tests.test_model_unet import TINY as TINY_UNET
 
 H, W = 12, 16
 
@@ -298,3 +301,55 @@ def test_a_denoised_image_beyond_the_memory_left_is_refused_before_denoising(
         f"denoise: error: {tmp_path / 'in.exr'}: 16x12 pixels: the denoised image and its guard weights need "
         "3,072 bytes, more than the 3,071 bytes of memory available")
     assert not (tmp_path / "out.exr").exists()
+
+
+_PATH_CHILD = """
+import gc, json, sys
+import pipeline.denoise_file as denoise_file
+
+def status(key):
+    for line in open("/proc/self/status"):
+        if line.startswith(key + ":"):
+            return int(line.split()[1]) * 1024
+
+seen = {}
+read_input = denoise_file.read_input
+
+def measured_read(*args, **kwargs):  # the high-water mark from just before the image is read
+    gc.collect()
+    open("/proc/self/clear_refs", "w").write("5")
+    seen["base"] = status("VmRSS")
+    image = read_input(*args, **kwargs)
+    seen["images"] = 2 * image.rgb.nbytes + image.variance.nbytes  # the input, its variance, the output
+    return image
+
+denoise_file.read_input = measured_read
+cfg = denoise_file.DenoiseFileConfig(inputs=[sys.argv[1]], output=sys.argv[2], model=sys.argv[3],
+                                     spp=int(sys.argv[4]), max_memory_mb=float(sys.argv[5]))
+record = denoise_file.denoise_file(cfg)
+scratch = status("VmHWM") - seen["base"] - seen["images"]
+print(json.dumps({"scratch_mb": scratch / 2**20, "models": record["models_run"]}))
+"""
+
+
+@pytest.mark.slow
+def test_the_whole_command_keeps_its_scratch_within_the_budget(tmp_path: Path) -> None:
+    """``denoise`` of a 1536x1024 EXR with a variance layer by an ensemble of two networks under
+    ``--max-memory-mb 64``, in a fresh process: its peak RSS less the process before the image was
+    read, less the input, its variance and the output, within 1.1x the budget (reading, both
+    networks on budgeted tiles, combining them, the guard and its weight map, the energy
+    correction, writing). The 4K figures: benchmarks/denoise_memory.py --parts path."""
+    folder = tmp_path / "ckpts"
+    folder.mkdir()
+    flat = write_tiny_checkpoint(folder / "flat.ckpt")
+    unet = write_tiny_checkpoint(folder / "unet.ckpt", TINY_UNET, seed=1)
+    rng = np.random.default_rng(0)
+    image = rng.gamma(2.0, 0.5, (1024, 1536, 3)).astype(np.float32)
+    write_exr(tmp_path / "in.exr", image, layers={"variance": 0.25 * image * image})
+    del image
+    proc = subprocess.run([sys.executable, "-c", _PATH_CHILD, str(tmp_path / "in.exr"), str(tmp_path / "out.exr"),
+                           f"{flat}+{unet}", "16", "64"], capture_output=True, text=True, check=True,
+                          cwd=Path(__file__).resolve().parents[1])
+    m = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert m["models"] == ["flat", "unet"], m
+    assert m["scratch_mb"] <= 1.1 * 64, m

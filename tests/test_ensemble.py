@@ -14,7 +14,8 @@ from pipeline.denoise_file import denoise_summary
 from denoise.precision import native_bfloat16
 from denoise.denoiser import Denoiser, select
 from denoise.ensemble import (COMBINE_BYTES_PER_PIXEL, combine, combine_in_place, combine_weights,
-                              weight_bytes_per_pixel, weighted_sum)
+                              denoise_combined, weight_bytes_per_pixel, weighted_sum)
+from denoise.tiling import plan_tiles
 from model.registry import range_suffix, split_range
 from denoise.noise_guard import clean_render
 from tests.test_denoiser import write_tiny_checkpoint
@@ -324,3 +325,52 @@ def test_the_record_names_the_float_format_of_each_network_that_ran(
     assert "ran flat + unet in float32," in "\n".join(denoise_summary(printed))
     assert "ran flat (float32) + unet (bfloat16)," in "\n".join(denoise_summary({**printed, "precision":
                                                                                    "float32+bfloat16"}))
+
+
+@pytest.mark.parametrize("weighted,skip", [(True, None), (False, None), (True, 1e-3)])
+def test_combined_band_by_band_is_the_whole_image_combination(two_models: tuple[Path, Path], weighted: bool,
+                                                             skip: float | None) -> None:
+    """denoise_combined in bands of a few rows, each member on small tiles: combine() of the
+    members' whole-image outputs (to float32 rounding of the networks' tiling); one band of the
+    whole image: the same."""
+    from denoise.chain import ChainRun, denoise_image
+
+    truth, noisy, var = _case(70, 50, seed=3)
+    var[:, :25] = 0.0  # a converged part (the skip test leaves it out)
+    variance = var if weighted else None
+    nets = [Denoiser(p).net for p in two_models]
+    outputs = [denoise_image(n, noisy, core=4096, variance=variance, skip_below=skip) for n in nets]
+    expected = combine(noisy, outputs, variance)
+    for rows, cores in [(16, [(8, 16), (16, 16)]), (70, [(70, 50), (70, 50)]), (32, [(16, 8), (32, 24)])]:
+        runs = [ChainRun(n, noisy, variance=variance, skip_below=skip) for n in nets]
+        got = denoise_combined(runs, noisy, variance, rows, cores, 2**20)
+        np.testing.assert_allclose(got, expected, rtol=1e-4, atol=1e-5)
+
+
+def test_an_ensemble_plan_fits_its_budget(two_models: tuple[Path, Path]) -> None:
+    """Denoiser.ensemble_plan: every member's largest window at its bytes per pixel, beside the
+    outputs it holds and the fixed cost, within the budget; bands where the whole image's outputs
+    would not fit, the whole image where they do."""
+    from denoise.ensemble import context_rows
+    from denoise.tiling import window_span
+    from model.architectures import alignment
+
+    height, width = 2048, 3072
+    for budget, whole in [(96, False), (1024, True)]:
+        den = Denoiser("+".join(str(p) for p in two_models), max_memory_mb=budget)
+        plan = den.ensemble_plan(height, width, den.members, weighted=True)
+        assert (plan.rows >= height) == whole, plan
+        context = context_rows(True, max(alignment(m.config) for m in den.members))
+        rect = min(height, plan.rows + 2 * context)
+        held = 12 * (len(den.members) - (1 if whole else 0)) * rect * width
+        room = den.max_bytes - den.fixed_bytes(den.members) - held
+        assert plan.combine_bytes > 0 and held + 4 * len(den.members) * rect * width + plan.combine_bytes <= \
+            den.max_bytes - den.fixed_bytes(den.members) + 1
+        for m, core in zip(den.members, plan.cores):
+            align = alignment(m.config)
+            for y0 in range(0, height, plan.rows):
+                r0, r1 = max(0, y0 - context), min(height, y0 + plan.rows + context)
+                for t in plan_tiles(r1 - r0, width, core, 0, align):
+                    wy = window_span(t.y0 + r0, t.y1 + r0, height, m.margin, align)
+                    wx = window_span(t.x0, t.x1, width, m.margin, align)
+                    assert (wy[1] - wy[0]) * (wx[1] - wx[0]) * den.bytes_per_pixel(m) <= room

@@ -240,3 +240,24 @@ def test_aux_layers_beside_the_chosen_colour_layer(tmp_path: Path, rng: np.rando
     assert find_aux_layer(exr, ALBEDO_WORDS, pick_color_layer(exr, "A.Combined"), ("rgb",)) is None
     assert find_aux_layer(exr, ALBEDO_WORDS, pick_color_layer(exr, "B.Combined"), ("rgb",)).name == \
         "B.Denoising Albedo"
+
+
+@pytest.mark.parametrize("dtype", [np.float16, np.float32])
+def test_a_taken_layer_is_held_once_and_written_back_as_read(tmp_path: Path, rng: np.random.Generator,
+                                                            dtype: type) -> None:
+    """ExrFile.take_image: the layer's float32 pixels, which then also stand for its channels in the
+    file (views, no second copy); the file written back holds the channels it was read with."""
+    channels = {**planes(rng, "", "RGB", dtype), **planes(rng, "variance", "Y", dtype)}
+    OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION}, dict(channels)).write(str(tmp_path / "in.exr"))
+    exr = read_exr_file(tmp_path / "in.exr")
+    rgb = exr.take_image(exr.layers[""])
+    var = exr.take_image(exr.layers["variance"], 3)
+    assert rgb.dtype == var.dtype == np.float32 and rgb.shape == var.shape == (H, W, 3)
+    assert np.array_equal(var[:, :, 2], channels["variance.Y"].astype(np.float32))
+    held = exr.parts[0].channels
+    assert all(held[c].image is rgb for c in "RGB") and held["variance.Y"].image is var
+    assert exr.is_half(exr.layers[""]) == (dtype == np.float16)
+    write_exr_file(tmp_path / "out.exr", exr)
+    back = read_exr_file(tmp_path / "out.exr").parts[0].channels
+    for name, pixels in channels.items():
+        assert back[name].dtype == pixels.dtype and np.array_equal(back[name], pixels), name

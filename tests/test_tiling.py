@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from denoise.tiling import core_for_budget, cores_for_budget, plan_tiles, run_tiled, run_windows
+from denoise.tiling import band_cores, core_for_budget, cores_for_budget, plan_tiles, run_tiled, run_windows, window_span
 
 
 @pytest.mark.parametrize("h,w,core,margin", [(1, 1, 8, 3), (1, 37, 8, 3), (37, 1, 8, 3),
@@ -101,3 +101,34 @@ def test_cores_for_budget_full_height_strips_for_1080p() -> None:
 
 def test_cores_for_budget_falls_back_to_the_smallest_cores() -> None:
     assert cores_for_budget(500, 500, 1.0, 10.0, 253, 32, minimum=16) == (32, 32)
+
+
+def test_band_cores_for_the_whole_image_is_cores_for_budget() -> None:
+    plan = band_cores(1080, 1080, 1920, 300.0, 200 * 2**20, 250, 32)
+    assert plan is not None
+    core, bound = plan
+    assert core == cores_for_budget(1080, 1920, 300.0, 200 * 2**20, 250, 32)
+    assert bound == sum((t.wy1 - t.wy0) * (t.wx1 - t.wx0) for t in plan_tiles(1080, 1920, core, 250, 32))
+
+
+@pytest.mark.parametrize("rows,margin,align", [(96, 250, 32), (64, 15, 1), (320, 343, 32), (33, 7, 1)])
+def test_band_cores_windows_fit_wherever_the_band_lies(rows: int, margin: int, align: int) -> None:
+    """Every window of a band's tiles (cores cut from the band's first row, on the alignment grid,
+    margins from the whole image) within the budget, and their pixels within the bound, for a band
+    at the top, in the middle and at the bottom of the image."""
+    height, width, bpp, budget = 2160, 3840, 350.0, 256 * 2**20
+    plan = band_cores(rows, height, width, bpp, budget, margin, align)
+    assert plan is not None
+    core, bound = plan
+    for y0 in (0, height // 2 // align * align, height - rows):
+        total = 0
+        for t in plan_tiles(rows, width, core, 0, align):
+            wy = window_span(t.y0 + y0, t.y1 + y0, height, margin, align)
+            wx = window_span(t.x0, t.x1, width, margin, align)
+            assert (wy[1] - wy[0]) * (wx[1] - wx[0]) * bpp <= budget
+            total += (wy[1] - wy[0]) * (wx[1] - wx[0])
+        assert total <= bound
+
+
+def test_band_cores_none_where_no_window_fits() -> None:
+    assert band_cores(64, 2160, 3840, 350.0, 2**20, 343, 32) is None
