@@ -191,7 +191,7 @@ def measured_read(*args, **kwargs):  # the high-water mark from just before the 
 
 file_mod.read_input = measured_read
 cfg = file_mod.DenoiseFileConfig(inputs=[job["input"]], output=job["out"], model=job["entry"], spp=job["spp"],
-                                 max_memory_mb=job["budget"])
+                                 max_memory_mb=job["budget"], overwrite=True)  # one scratch output per run
 record = file_mod.denoise_file(cfg)
 peak = status("VmHWM")
 print(json.dumps({"base_mb": seen["base"] / MB, "peak_mb": peak / MB, "images_mb": seen["images"] / MB,
