@@ -190,7 +190,9 @@ def denoise_parser() -> OneLineParser:
     add_model_argument(p)
     p.add_argument("--reference", help="reference image: print metrics, OIDN's too when pyoidn is installed "
                    "(colour-only, and with albedo and normals where the EXR has those layers)")
-    p.add_argument("--max-memory-mb", type=float, default=DEFAULT_MAX_MEMORY_MB, help="tile memory bound")
+    p.add_argument("--max-memory-mb", type=float, default=DEFAULT_MAX_MEMORY_MB,
+                   help="scratch memory bound in MB beyond the input and output images, as OIDN's "
+                   "maxMemoryMB (default %(default)g)")
     p.add_argument("--skip-below", type=positive_float, metavar="NOISE", help=SKIP_HELP)
     p.add_argument("--precision", choices=PRECISIONS, default="auto", help=PRECISION_HELP)
     p.add_argument("--flips", type=int, choices=tuple(FLIPS), default=1, help=FLIPS_HELP)
