@@ -1,11 +1,13 @@
 """The README's two pictures, made from a run and the result files.
 
 * ``strip``: one eval scene rendered as ``render-and-denoise`` renders it (two halves, ``--spp``,
-  seed 7), denoised by the default model and by OIDN colour-only; a crop of the noisy render, ours,
-  OIDN's and the 2048-spp reference side by side, each labelled with its PSNR on the whole image
+  seed 7), denoised by the default model, by OIDN colour-only and by OIDN with the albedo and normals
+  of an AOV pass (:func:`pipeline.evaluation.with_aovs`); a crop of the noisy render, ours, both
+  OIDNs' and the 2048-spp reference side by side, each labelled with its PSNR on the whole image
   (``docs/figures/strip.png``; the figures in ``benchmarks/results/figures.json``).
 * ``tradeoff``: PSNR on the eval scenes at 4, 16 and 128 spp against time as a multiple of OIDN's
-  at that spp, one point per registry entry and OIDN (``docs/figures/quality_time.png``), from
+  at that spp, one point per registry entry and OIDN colour-only, and OIDN + albedo + normal's PSNR as a
+  dashed line (its time is not in the inference benchmark; ``docs/figures/quality_time.png``), from
   ``benchmarks/results/evaluate.json`` and ``benchmarks/results/inference.json`` (its 1280x720 row).
 
     python -m benchmarks.figures [strip|tradeoff|all] [--scene NAME] [--spp N] [--crop X,Y,SIZE]
@@ -31,6 +33,7 @@ FIGURES = ROOT / "docs" / "figures"
 STRIP = FIGURES / "strip.png"
 TRADEOFF = FIGURES / "quality_time.png"
 TIME_SIZE = "1280x720"
+OIDN_AUX_LABEL = "OIDN + alb + nrm"
 
 
 def strip(scene_name: str, spp: int, crop: tuple[int, int, int], out: Path = STRIP) -> dict[str, Any]:
@@ -38,16 +41,17 @@ def strip(scene_name: str, spp: int, crop: tuple[int, int, int], out: Path = STR
     from PIL import Image, ImageDraw
 
     from denoise.denoiser import Denoiser
-    from pipeline.evaluation import denoise_output, render_input
+    from pipeline.evaluation import denoise_output, oidn_output, render_input, with_aovs
 
     scene = eval_scenes([scene_name], EVAL_DIR)[0]
     settings = scene.settings()
-    render = render_input(settings.load(), spp, settings)
+    loaded = settings.load()
+    render, _ = with_aovs(render_input(loaded, spp, settings), loaded, settings)
     reference = scene.reference()
     denoiser = Denoiser(None)
     ours = denoise_output(render, denoiser).image
-    oidn = denoise_output(render, None).image
-    panels = [("noisy", render.rgb), (f"ours ({denoiser.name})", ours), ("OIDN", oidn), ("reference", reference)]
+    panels = [("noisy", render.rgb), (f"ours ({denoiser.name})", ours), ("OIDN", oidn_output(render).image),
+              (OIDN_AUX_LABEL, oidn_output(render, aux=True).image), ("reference", reference)]
     x, y, size = crop
     scale = max(1, 256 // size)
     tiles, figures = [], {}
@@ -73,7 +77,8 @@ def strip(scene_name: str, spp: int, crop: tuple[int, int, int], out: Path = STR
 
 
 def tradeoff_points(evaluate: dict[str, Any], inference: dict[str, Any]) -> dict[str, dict[str, Any]]:
-    """Per registry entry (and OIDN): PSNR and time over OIDN's at 1280x720, at each card spp."""
+    """Per registry entry (and OIDN colour-only): PSNR and time over OIDN's at 1280x720, at each card
+    spp; OIDN + albedo + normal ("OIDN + alb + nrm"): its PSNR only."""
     scored = evaluate["summary"]["scored"]
     ratios = inference["ratios"][TIME_SIZE]
     points = {}
@@ -84,6 +89,8 @@ def tradeoff_points(evaluate: dict[str, Any], inference: dict[str, Any]) -> dict
                         "time_ratio": {str(s): ratios[name][str(s)] for s in CARD_SPP}}
     points["OIDN"] = {"psnr": {str(s): scored[str(s)]["oidn_psnr"] for s in CARD_SPP},
                       "time_ratio": {str(s): 1.0 for s in CARD_SPP}}
+    if all("oidn_aux_psnr" in scored[str(s)] for s in CARD_SPP):
+        points[OIDN_AUX_LABEL] = {"psnr": {str(s): scored[str(s)]["oidn_aux_psnr"] for s in CARD_SPP}}
     return points
 
 
@@ -98,6 +105,11 @@ def plot_tradeoff(points: dict[str, dict[str, Any]], out: Path = TRADEOFF) -> No
         # models that run the same networks at this spp (the same PSNR) share a point at their mean time
         groups: dict[float, list[str]] = {}
         for name, p in points.items():
+            if "time_ratio" not in p:  # quality only: a level line across the panel
+                ax.axhline(p["psnr"][str(spp)], color="0.4", linestyle="--", linewidth=0.8)
+                ax.annotate(name, (0, p["psnr"][str(spp)]), xycoords=("axes fraction", "data"),
+                            textcoords="offset points", xytext=(3, 3), fontsize=7, color="0.3")
+                continue
             groups.setdefault(round(p["psnr"][str(spp)], 4), []).append(name)
         for psnr_db, names in groups.items():
             oidn = names == ["OIDN"]
