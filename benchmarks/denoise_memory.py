@@ -177,7 +177,7 @@ write_exr(job["out"], render.rgb, layers={"variance": render.variance}, metadata
 print(json.dumps({"written": job["out"]}))
 """
 
-_PATH_CHILD = _COMMON + r"""
+PATH_CHILD = _COMMON + r"""
 import pipeline.denoise_file as file_mod
 seen = {}
 read_input = file_mod.read_input
@@ -292,7 +292,7 @@ def path(runs: list[tuple[str, int, float]], size: tuple[int, int], spp: int, wo
     for entry, entry_spp, budget in runs:
         job = {"input": str(source), "out": str(work / "out.exr"), "entry": entry, "spp": entry_spp, "budget": budget}
         row = {"res": list(size), "entry": entry, "spp": entry_spp, "budget_mb": budget,
-               **run_child(ROOT, _PATH_CHILD, job)}
+               **run_child(ROOT, PATH_CHILD, job)}
         row["x_budget"] = row["scratch_mb"] / budget
         rows.append(row)
         print(f"{size[0]}x{size[1]} {entry:8} {entry_spp:4} spp {budget:6g} MB: scratch {row['scratch_mb']:6.0f} MB "

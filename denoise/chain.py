@@ -29,7 +29,7 @@ import torch
 from torch import nn
 
 from imaging.blocks import block_rows, parallel_map, pass_workers, row_blocks
-from denoise.tiling import Core, Tile, plan_tiles, run_windows, window_span
+from denoise.tiling import Core, Tile, region_tiles, run_windows
 from model.architectures import alignment, inference_bytes_per_pixel, receptive_radius
 from model.config import ModelConfig
 from model.device import module_device
@@ -309,22 +309,28 @@ class ChainRun:
         with the network's margin taken from the whole image (the sanitised render outside the
         skip test's noisy region). A new (y1-y0)x(x1-x0)x3 float32 array."""
         height, width = self.color.shape[:2]
-        out = np.empty((y1 - y0, x1 - x0, 3), np.float32)
         a, b, c, d = y0, y1, x0, x1
         if self.skipping:
-            for rows in row_blocks(y1 - y0, x1 - x0, PASS_BYTES_PER_PIXEL, self.max_bytes):
-                out[rows] = sanitize(self.color[y0 + rows.start:y0 + rows.stop, x0:x1])
+            out = self.render_copy(y0, y1, x0, x1)
             if self.region is None:
                 return out
             ry0, ry1, rx0, rx1 = self.region
             a, b, c, d = max(y0, ry0), min(y1, ry1), max(x0, rx0), min(x1, rx1)
             if a >= b or c >= d:
                 return out
-        for t in plan_tiles(b - a, d - c, core, 0, self.align):
-            t = Tile(t.y0 + a, t.y1 + a, t.x0 + c, t.x1 + c, *window_span(t.y0 + a, t.y1 + a, height, self.margin, self.align),
-                     *window_span(t.x0 + c, t.x1 + c, width, self.margin, self.align))
+        else:
+            out = np.empty((y1 - y0, x1 - x0, 3), np.float32)
+        for t in region_tiles(height, width, core, self.margin, self.align, (a, b, c, d)):
             out[t.y0 - y0:t.y1 - y0, t.x0 - x0:t.x1 - x0] = \
                 self.window(t)[t.y0 - t.wy0:t.y1 - t.wy0, t.x0 - t.wx0:t.x1 - t.wx0]
+        return out
+
+    def render_copy(self, y0: int, y1: int, x0: int, x1: int) -> np.ndarray:
+        """The sanitised render over [y0:y1, x0:x1] (what the skip test leaves outside its noisy
+        region), copied in row blocks within ``max_bytes``: a new float32 array."""
+        out = np.empty((y1 - y0, x1 - x0, 3), np.float32)
+        for rows in row_blocks(y1 - y0, x1 - x0, PASS_BYTES_PER_PIXEL, self.max_bytes):
+            out[rows] = sanitize(self.color[y0 + rows.start:y0 + rows.stop, x0:x1])
         return out
 
 
@@ -357,9 +363,7 @@ def denoise_image(model: nn.Module, color: np.ndarray, aux: Aux = None,
     height, width = color.shape[:2]
     out = None
     if run.skipping:
-        out = np.empty((height, width, 3), np.float32)
-        for rows in row_blocks(height, width, PASS_BYTES_PER_PIXEL, max_bytes):
-            out[rows] = sanitize(color[rows])
+        out = run.render_copy(0, height, 0, width)
         if run.region is None:
             return out
     with run:

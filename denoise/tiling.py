@@ -159,6 +159,17 @@ def run_tiled(
                        progress, align)
 
 
+def region_tiles(height: int, width: int, core: Core, margin: int, align: int = 1,
+                 region: tuple[int, int, int, int] | None = None) -> list[Tile]:
+    """The tiles of ``region`` (y0, y1, x0, x1; the whole HxW image where None): its cores cut as
+    :func:`plan_tiles` cuts them, each window taking its ``margin`` from the whole image."""
+    y0, y1, x0, x1 = region if region is not None else (0, height, 0, width)
+    return [Tile(t.y0 + y0, t.y1 + y0, t.x0 + x0, t.x1 + x0,
+                 *window_span(t.y0 + y0, t.y1 + y0, height, margin, align),
+                 *window_span(t.x0 + x0, t.x1 + x0, width, margin, align))
+            for t in plan_tiles(y1 - y0, x1 - x0, core, 0, align)]
+
+
 def run_windows(
     fn: Callable[[Tile], np.ndarray], height: int, width: int, core: Core, margin: int,
     progress: Callable[[int, int], None] | None = None, align: int = 1,
@@ -173,11 +184,7 @@ def run_windows(
     ``align``, or at the image's end); the windows still take their margins from the whole image,
     and ``out`` outside the region is left as it is.
     """
-    y0, y1, x0, x1 = region if region is not None else (0, height, 0, width)
-    tiles = [Tile(t.y0 + y0, t.y1 + y0, t.x0 + x0, t.x1 + x0,
-                  *window_span(t.y0 + y0, t.y1 + y0, height, margin, align),
-                  *window_span(t.x0 + x0, t.x1 + x0, width, margin, align))
-             for t in plan_tiles(y1 - y0, x1 - x0, core, 0, align)]
+    tiles = region_tiles(height, width, core, margin, align, region)
     step = max(1, workers)
     for start in range(0, len(tiles), step):
         batch = tiles[start:start + step]

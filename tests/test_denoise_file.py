@@ -3,14 +3,13 @@ two halves, a variance layer; output in the input's layout or plain RGB."""
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import OpenEXR
 import pytest
 
+from benchmarks.denoise_memory import PATH_CHILD, ROOT, run_child
 from imaging.errors import DenoiserError
 from imaging.exr import read_exr, write_exr
 from imaging.exr_layers import read_exr_file
@@ -303,35 +302,6 @@ def test_a_denoised_image_beyond_the_memory_left_is_refused_before_denoising(
     assert not (tmp_path / "out.exr").exists()
 
 
-_PATH_CHILD = """
-import gc, json, sys
-import pipeline.denoise_file as denoise_file
-
-def status(key):
-    for line in open("/proc/self/status"):
-        if line.startswith(key + ":"):
-            return int(line.split()[1]) * 1024
-
-seen = {}
-read_input = denoise_file.read_input
-
-def measured_read(*args, **kwargs):  # the high-water mark from just before the image is read
-    gc.collect()
-    open("/proc/self/clear_refs", "w").write("5")
-    seen["base"] = status("VmRSS")
-    image = read_input(*args, **kwargs)
-    seen["images"] = 2 * image.rgb.nbytes + image.variance.nbytes  # the input, its variance, the output
-    return image
-
-denoise_file.read_input = measured_read
-cfg = denoise_file.DenoiseFileConfig(inputs=[sys.argv[1]], output=sys.argv[2], model=sys.argv[3],
-                                     spp=int(sys.argv[4]), max_memory_mb=float(sys.argv[5]))
-record = denoise_file.denoise_file(cfg)
-scratch = status("VmHWM") - seen["base"] - seen["images"]
-print(json.dumps({"scratch_mb": scratch / 2**20, "models": record["models_run"]}))
-"""
-
-
 @pytest.mark.slow
 def test_the_whole_command_keeps_its_scratch_within_the_budget(tmp_path: Path) -> None:
     """``denoise`` of a 1536x1024 EXR with a variance layer by an ensemble of two networks under
@@ -347,9 +317,8 @@ def test_the_whole_command_keeps_its_scratch_within_the_budget(tmp_path: Path) -
     image = rng.gamma(2.0, 0.5, (1024, 1536, 3)).astype(np.float32)
     write_exr(tmp_path / "in.exr", image, layers={"variance": 0.25 * image * image})
     del image
-    proc = subprocess.run([sys.executable, "-c", _PATH_CHILD, str(tmp_path / "in.exr"), str(tmp_path / "out.exr"),
-                           f"{flat}+{unet}", "16", "64"], capture_output=True, text=True, check=True,
-                          cwd=Path(__file__).resolve().parents[1])
-    m = json.loads(proc.stdout.strip().splitlines()[-1])
+    # the child process the benchmark measures each registry entry with (benchmarks/denoise_memory.py)
+    m = run_child(ROOT, PATH_CHILD, {"input": str(tmp_path / "in.exr"), "out": str(tmp_path / "out.exr"),
+                                     "entry": f"{flat}+{unet}", "spp": 16, "budget": 64})
     assert m["models"] == ["flat", "unet"], m
     assert m["scratch_mb"] <= 1.1 * 64, m
