@@ -5,7 +5,8 @@ report on different images. This scores every ``--models`` checkpoint on one set
 of each ``--data`` folder (scenes with index below ``--max-scenes``, at every spp the dataset has),
 as the trainer's validation does (:class:`training.validate.Validator`: the network in float32, whole
 images, tonemapped PSNR and relMSE), with the noisy input and OIDN 2.5 colour-only on the same
-images, per spp and overall.
+images, per spp and overall. ``--split train`` scores the scenes the networks trained on instead:
+beside the held-out figures it gives the generalisation gap (what more scenes could still buy).
 
     python -m benchmarks.validation --data data/train256 --data data/media256 --models unet-m-k5-lowspp,flat-s-allspp
 
@@ -29,24 +30,30 @@ from training.validate import Validator
 from model.registry import registry, split_member
 
 
+SPLITS = ("val", "train")
+
+
 def val_images(folders: list[Path], max_scenes: int | None, noise: bool,
-               min_ceiling_db: float | None = None) -> list[ValImage]:
-    """The ``val`` scenes of every folder (index below ``max_scenes``; with ``min_ceiling_db``, only
-    those whose reference's noise ceiling is at least that), scene ids offset per folder as in
-    training. Raises :class:`DatasetError` when there are none."""
+               min_ceiling_db: float | None = None, split: str = "val") -> list[ValImage]:
+    """The ``split`` scenes (``val``, or ``train``: those the networks trained on) of every folder
+    (index below ``max_scenes``; with ``min_ceiling_db``, only those whose reference's noise ceiling
+    is at least that), scene ids offset per folder as in training. Raises :class:`DatasetError` when
+    there are none."""
+    if split not in SPLITS:
+        raise ValueError(f"split must be one of {', '.join(SPLITS)}, not {split!r}")
     images: list[ValImage] = []
     for k, root in enumerate(folders):
-        records = [r for r in read_manifest(root) if r.split == "val" and (not max_scenes or r.index < max_scenes)
+        records = [r for r in read_manifest(root) if r.split == split and (not max_scenes or r.index < max_scenes)
                    and (min_ceiling_db is None or (r.ref_ceiling_db or 0.0) >= min_ceiling_db)]
         images += load_val_images(root, records, aux=False, noise=noise, index_offset=k * DATASET_ID_STRIDE)
     if not images:
         clean = f" whose reference's noise ceiling is at least {min_ceiling_db:g} dB" if min_ceiling_db else ""
-        raise DatasetError(f"no 'val' scenes{clean} in {', '.join(map(str, folders))}")
+        raise DatasetError(f"no {split!r} scenes{clean} in {', '.join(map(str, folders))}")
     return images
 
 
 def score(models: dict[str, Path], folders: list[Path], max_scenes: int | None,
-          oidn: bool = True, min_ceiling_db: float | None = None) -> dict[str, Any]:
+          oidn: bool = True, min_ceiling_db: float | None = None, split: str = "val") -> dict[str, Any]:
     """Every model's :meth:`Validator.run` result on the same images, with the noisy input's and
     OIDN's (``baselines``: per spp, from the first model's run). Raises ValueError for a model
     with albedo/normal inputs (the validation sets here are colour only)."""
@@ -55,7 +62,7 @@ def score(models: dict[str, Path], folders: list[Path], max_scenes: int | None,
     if aux:
         raise ValueError(f"{', '.join(aux)}: models with albedo/normal inputs are not scored here")
     images = val_images(folders, max_scenes, noise=any(c.noise_input for _, c, _ in loaded.values()),
-                        min_ceiling_db=min_ceiling_db)
+                        min_ceiling_db=min_ceiling_db, split=split)
     validator = Validator(images, use_oidn=oidn)  # caches the noisy and OIDN scores: equal for every model
     runs = {name: validator.run(model) for name, (model, _, _) in loaded.items()}
     results = {name: {"path": str(models[name]), "config": config.to_dict(), "step": meta.get("step"),
@@ -69,7 +76,7 @@ def score(models: dict[str, Path], folders: list[Path], max_scenes: int | None,
     for who, per_spp in baselines.items():
         present = [v["psnr"] for v in per_spp.values() if v["psnr"] is not None]
         baselines[who] = {"per_spp": per_spp, "psnr": sum(present) / len(present) if present else None}
-    return {"images": len(images), "scenes": len({i.scene for i in images}),
+    return {"split": split, "images": len(images), "scenes": len({i.scene for i in images}),
             "spp": sorted(int(s) for s in first), "models": results, "baselines": baselines}
 
 
@@ -80,7 +87,8 @@ def _db(value: float | None) -> str:
 def note(result: dict[str, Any]) -> str:
     """What the table's figures are."""
     clean = f" (references of noise ceiling >= {result['min_ceiling_db']:g} dB)" if result.get("min_ceiling_db") else ""
-    return (f"{result['images']} images of {result['scenes']} held-out scenes{clean} at {result['spp'][0]}-"
+    scenes = "training" if result.get("split") == "train" else "held-out"
+    return (f"{result['images']} images of {result['scenes']} {scenes} scenes{clean} at {result['spp'][0]}-"
             f"{result['spp'][-1]} spp; PSNR dB (tonemapped) of the network in float32, as the trainer validates "
             "it; OIDN 2.5 colour-only on the same images; the last columns: each model minus OIDN.")
 
@@ -121,7 +129,9 @@ def model_specs(entries: tuple[str, ...]) -> dict[str, Path]:
 def build_parser() -> OneLineParser:
     p = OneLineParser(prog="python -m benchmarks.validation", description=__doc__.splitlines()[0])
     p.add_argument("--data", type=Path, action="append", required=True,
-                   help="dataset folder (repeatable): its 'val' scenes are scored")
+                   help="dataset folder (repeatable): its --split scenes are scored")
+    p.add_argument("--split", choices=SPLITS, default="val",
+                   help="the held-out scenes (val, the default) or those the networks trained on (train)")
     default = registry().entries[registry().default].members
     members = tuple(dict.fromkeys(split_member(m)[0] for m in default.split("+")))  # each once, on every spp
     p.add_argument("--models", type=name_list, default=members,
@@ -144,7 +154,8 @@ def main(argv: list[str] | None = None) -> int:
         models = model_specs(args.models)
         record = run_record("benchmarks.validation", argv)
         start = time.perf_counter()
-        result = score(models, args.data, args.max_scenes, oidn=not args.no_oidn, min_ceiling_db=args.min_ceiling_db)
+        result = score(models, args.data, args.max_scenes, oidn=not args.no_oidn, min_ceiling_db=args.min_ceiling_db,
+                       split=args.split)
     except COMMAND_ERRORS as exc:
         return parser.fail(exc)
     result = {**finish_record(record, start), "data": [str(d) for d in args.data],

@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from benchmarks.validation import build_parser, main, model_specs, score
+from benchmarks.validation import build_parser, main, markdown, model_specs, score
 from imaging.errors import DatasetError
 from model.architectures import build_model
 from model.checkpoint import save_checkpoint
@@ -99,3 +99,14 @@ def test_min_ceiling_keeps_the_scenes_whose_reference_is_clean_enough(tmp_path: 
     assert score(models, [root], max_scenes=None, oidn=False, min_ceiling_db=30)["scenes"] == 2
     with pytest.raises(DatasetError, match="no 'val' scenes whose reference's noise ceiling is at least 46 dB"):
         score(models, [root], max_scenes=None, oidn=False, min_ceiling_db=46)
+
+
+def test_the_train_split_scores_the_scenes_the_networks_trained_on(data: tuple[Path, Path], tmp_path: Path) -> None:
+    models = {"identity": _checkpoint(tmp_path / "id.ckpt")}
+    train = score(models, [data[0]], max_scenes=None, oidn=False, split="train")
+    held_out = score(models, [data[0]], max_scenes=None, oidn=False)
+    assert train["split"] == "train" and train["scenes"] == 2 and train["images"] == 4  # scenes 0 and 2
+    assert train["baselines"]["noisy"]["psnr"] != pytest.approx(held_out["baselines"]["noisy"]["psnr"], abs=1e-3)
+    assert "4 images of 2 training scenes" in markdown({**train, "command": "c", "date": "d"})
+    with pytest.raises(ValueError, match="split must be one of val, train"):
+        score(models, [data[0]], max_scenes=None, oidn=False, split="test")
