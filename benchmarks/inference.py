@@ -21,7 +21,7 @@ own choice).
 
     python -m benchmarks.inference [--quick] [--sizes 128x128,256x256,1280x720,1920x1080]
         [--models fast,balanced,high] [--spp 4,16,128,unknown] [--precisions auto] [--repeat 5]
-        [--processes 3] [--threads N]
+        [--processes 3] [--threads N] [--out benchmarks/results/inference.json]
 
 ``--processes N`` (default 3) repeats all of it in N fresh processes, one after the other, and pools
 their runs: on this 2-core VM a process keeps its own speed (the same calls took 10.8-15.0 ms in
@@ -34,7 +34,9 @@ is named ``model@bfloat16``), or only in the one its ``--models`` entry names (`
 network in its own ``auto`` format); the JSON records whether the CPU computes bfloat16 natively.
 
 Also prints where the time of one call goes at the smallest size (stages of the chain).
-``--quick``: 256x256 only, one run. Prints a table and writes benchmarks/results/inference.json.
+``--quick``: 256x256 only, one run. Prints a table and writes ``--out`` (default
+benchmarks/results/inference.json). A candidate not yet trained is timed as ``PRESET:FIELD=INT``
+(``unet-s:kernel=5``): the preset with those fields, random weights.
 """
 from __future__ import annotations
 
@@ -43,6 +45,7 @@ import json
 import math
 import os
 import platform
+import re
 import statistics
 import subprocess
 import sys
@@ -64,7 +67,7 @@ from denoise.precision import PRECISIONS, native_bfloat16
 from model.unet import macs_per_pixel
 from denoise.denoiser import Denoiser, select
 from model.registry import registry
-from imaging.errors import DenoiserError
+from imaging.errors import ConfigError, DenoiserError
 from denoise.oidn import oidn_available, oidn_denoise
 
 RESULTS = Path(__file__).resolve().parent / "results" / "inference.json"
@@ -73,14 +76,34 @@ SPPS = (4, 16, 128, "unknown")  # the default --spp: the cards' spp and a file t
 STAGES_SPP = 4  # the spp of the stages' breakdown
 
 
+def _preset_overrides(name: str) -> tuple[str, dict[str, int]] | None:
+    """``PRESET[:FIELD=INT...]`` (``unet-s:kernel=5:growth=6``) as the preset and its integer field
+    overrides, or None for a name that is no architecture preset."""
+    base, _, rest = name.partition(":")
+    if base not in PRESETS or base in registry().names:
+        return None
+    overrides: dict[str, int] = {}
+    for item in filter(None, rest.split(":")):
+        key, sep, value = item.partition("=")
+        try:
+            overrides[key] = int(value)
+        except ValueError:
+            raise ConfigError(f"{name!r}: an override is FIELD=INTEGER, got {item!r}") from None
+        if not sep:
+            raise ConfigError(f"{name!r}: an override is FIELD=INTEGER, got {item!r}")
+    return base, overrides
+
+
 def _checkpoint(name: str, folder: Path) -> str:
-    """What ``Denoiser`` loads for a ``--models`` entry: an architecture preset gets random weights
-    (as after training: BN statistics, a non-zero output conv) in ``folder``; anything else (a
-    registry name, a checkpoint file, an expert spec) is passed on as it is."""
-    if name not in PRESETS or name in registry().names:
+    """What ``Denoiser`` loads for a ``--models`` entry: an architecture preset, with optional
+    integer field overrides (``unet-s:kernel=5``), gets random weights (as after training: BN
+    statistics, a non-zero output conv) in ``folder``; anything else (a registry name, a checkpoint
+    file, an expert spec) is passed on as it is."""
+    parsed = _preset_overrides(name)
+    if parsed is None:
         return name
     torch.manual_seed(0)
-    model = build_model(preset(name))
+    model = build_model(preset(parsed[0], **parsed[1]))
     with torch.no_grad():
         for m in model.modules():
             if isinstance(m, torch.nn.BatchNorm2d):
@@ -88,7 +111,7 @@ def _checkpoint(name: str, folder: Path) -> str:
                 m.running_var.uniform_(0.5, 1.5)
         last = model.tail if model.config.multiscale else model.tail[-1]
         torch.nn.init.normal_(last.weight, std=0.01)
-    path = folder / f"{name}.ckpt"
+    path = folder / (re.sub(r"[^A-Za-z0-9_.-]", "_", name) + ".ckpt")
     save_checkpoint(path, model, step=0)
     return str(path)
 
@@ -263,7 +286,7 @@ def main() -> None:
     p.add_argument("--sizes", type=size_list, default=list(SIZES))
     p.add_argument("--models", default="fast,balanced,high",
                    help="registry names, checkpoint files, expert specs A+B or architecture presets (random "
-                        "weights); NAME@PRECISION runs that model in that float format only")
+                        "weights; PRESET:FIELD=INT[:FIELD=INT] overrides fields); NAME@PRECISION runs that model in that float format only")
     p.add_argument("--spp", default=",".join(map(str, SPPS)),
                    help="comma-separated spp of the calls ('unknown': no spp and no variance)")
     p.add_argument("--precisions", default="auto",
@@ -271,6 +294,7 @@ def main() -> None:
     p.add_argument("--repeat", type=int, default=5)
     p.add_argument("--processes", type=int, default=3, help="fresh processes whose runs are pooled")
     p.add_argument("--threads", type=int, default=0, help="torch threads (0: the Denoiser's choice)")
+    p.add_argument("--out", type=Path, default=RESULTS, help=f"JSON written (default {RESULTS})")
     p.add_argument("--worker", nargs=2, metavar=("SPEC", "OUT"), help=argparse.SUPPRESS)
     args = p.parse_args()
     if args.worker:  # one process's share: read its spec, write its measurements
@@ -289,7 +313,10 @@ def main() -> None:
     load_before = os.getloadavg()
     with tempfile.TemporaryDirectory() as tmp:
         entries = [entry.partition("@") for entry in args.models.split(",")]  # NAME[@PRECISION]
-        files = {name: str(_checkpoint(name, Path(tmp))) for name, _, _ in entries}
+        try:
+            files = {name: str(_checkpoint(name, Path(tmp))) for name, _, _ in entries}
+        except ConfigError as exc:
+            raise SystemExit(f"inference: {exc}") from None
         fixed = {name: [prec] for name, _, prec in entries if prec}
         if not {p for ps in fixed.values() for p in ps} <= set(PRECISIONS):
             raise SystemExit(f"inference: a model's @PRECISION takes {', '.join(PRECISIONS)}, got {args.models!r}")
@@ -329,8 +356,8 @@ def main() -> None:
             print(f"{size} {name} ms: " + ", ".join(f"{k} {v:.1f}" for k, v in parts.items()))
     print(f"load average before/after: {load_before[0]:.2f} / {results['machine']['loadavg_after'][0]:.2f} "
           f"on {os.cpu_count()} CPUs")
-    write_json_atomic(RESULTS, results)
-    print(f"wrote {RESULTS}")
+    write_json_atomic(args.out, results)
+    print(f"wrote {args.out}")
 
 
 if __name__ == "__main__":

@@ -1,11 +1,15 @@
 """benchmarks/inference.py's model entries: registry names, presets with random weights, specs, spp."""
 from __future__ import annotations
 
+import json
+import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
-from benchmarks.inference import _checkpoint, _macs, call, denoiser_macs, ratios
+from benchmarks.inference import _checkpoint, _macs, _preset_overrides, call, denoiser_macs, ratios
+from imaging.errors import ConfigError
 from denoise.denoiser import Denoiser
 from model.config import PRESETS
 
@@ -19,6 +23,31 @@ def test_registry_names_and_files_are_passed_on_presets_get_random_weights(tmp_p
     den = Denoiser(f"{path}+{path}:-16")
     out = den.denoise_array(np.ones((8, 8, 3), np.float32), spp=4)
     assert out.models == (UNET, UNET)
+
+
+def test_a_preset_with_field_overrides_is_the_candidate_it_names(tmp_path: Path) -> None:
+    path = _checkpoint("unet-s:kernel=5:growth=6", tmp_path)
+    config = Denoiser(path).members[0].config
+    assert (config.kernel, config.growth, config.layers) == (5, 6, PRESETS["unet-s"].layers)
+    assert _preset_overrides("high") is None and _preset_overrides("unet-s") == ("unet-s", {})
+    for bad in ("unet-s:kernel=five", "unet-s:kernel", "unet-s:no_such_field=1"):
+        with pytest.raises(ConfigError):
+            _checkpoint(bad, tmp_path)
+
+
+def test_out_names_the_json_written(tmp_path: Path, monkeypatch) -> None:
+    """``--out`` keeps the committed results file as it is (a quick timing must not overwrite it)."""
+    import benchmarks.inference as inference
+
+    monkeypatch.setattr(inference, "oidn_available", lambda: False)
+    out = tmp_path / "timing.json"
+    before = inference.RESULTS.read_bytes() if inference.RESULTS.exists() else None
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(sys, "argv", ["inference", "--quick", "--models", "unet-s:kernel=5", "--spp", "4",
+                                      "--out", str(out)])
+    inference.main()
+    assert json.loads(out.read_text())["models"] and "unet-s:kernel=5" in out.read_text()
+    assert (inference.RESULTS.read_bytes() if inference.RESULTS.exists() else None) == before
 
 
 def test_macs_count_only_the_networks_that_run_at_the_spp(tmp_path: Path) -> None:
