@@ -163,6 +163,12 @@ def test_the_predicted_filter_is_a_per_pixel_filter_of_the_input_whose_weights_s
         out = torch.zeros(2, 3, 6, 7)
         add_kernel_(out, rgb, half.to(torch.bfloat16), 3, rows=rows, scale=2)
         torch.testing.assert_close(out, apply_kernel(rgb, full.to(torch.bfloat16), 3), rtol=1e-5, atol=1e-5)
+    # images narrower and lower than the filter: the banded edges repeat as apply_kernel's do
+    for h, w in ((1, 1), (1, 5), (3, 1), (2, 2)):
+        small, coef = rgb[..., :h, :w].contiguous(memory_format=torch.channels_last), torch.randn(2, 24, h, w)
+        out = torch.zeros(2, 3, h, w)
+        add_kernel_(out, small, coef, 5, rows=1)
+        torch.testing.assert_close(out, apply_kernel(small, coef, 5), rtol=1e-5, atol=1e-5)
     # a constant image passes unchanged whatever the coefficients; a 1x1 image too
     flat = torch.full((1, 3, 4, 4), 0.7)
     assert apply_kernel(flat, torch.randn(1, 24, 4, 4), 5).abs().max() < 1e-6
