@@ -36,6 +36,8 @@ Input and output are those of the original model: Nx3xHxW (Nx9xHxW with aux) tra
 """
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import torch
 from torch import nn
 from torch.nn import functional as F
@@ -91,8 +93,24 @@ def padded_input(image: torch.Tensor, align: int = 1) -> torch.Tensor:
     return p
 
 
+def _fused_conv_relu() -> Callable[..., torch.Tensor] | None:
+    """oneDNN's convolution with a ReLU post-op (what torch.compile's CPU backend calls), or None
+    where this torch build has none."""
+    try:
+        return torch.ops.mkldnn._convolution_pointwise if torch.backends.mkldnn.is_available() else None
+    except (AttributeError, RuntimeError):
+        return None
+
+
+_CONV_RELU = _fused_conv_relu()
+
+
 class _Conv(nn.Module):
-    """A folded conv: fixed weight, optional bias, 'same' padding, optional ReLU after it."""
+    """A folded conv: fixed weight, optional bias, 'same' padding, optional ReLU after it.
+
+    On the CPU the ReLU is oneDNN's post-op of the convolution (:func:`_fused_conv_relu`): the same
+    values bit for bit, without a pass of its own over the output (a bfloat16 ReLU over a
+    48-channel 640x368 map took 10 ms on 2 cores, the 1x1 conv before it 2; fused: 3.3 in all)."""
 
     def __init__(self, weight: torch.Tensor, bias: torch.Tensor | None, relu: bool) -> None:
         super().__init__()
@@ -102,6 +120,9 @@ class _Conv(nn.Module):
         self.relu = relu
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if self.relu and _CONV_RELU is not None and x.device.type == "cpu" and not torch.is_grad_enabled():
+            p = self.padding
+            return _CONV_RELU(x, self.weight, self.bias, [p, p], [1, 1], [1, 1], 1, "relu", [], "")
         y = F.conv2d(x, self.weight, self.bias, padding=self.padding)
         return y.relu_() if self.relu else y
 
