@@ -240,11 +240,13 @@ def main(argv: list[str] | None = None) -> int:
 
 def warm_up(denoiser: Denoiser) -> None:
     """One small call, so that the first scene's timing does not pay the one-off set-up; a model
-    with albedo and normal inputs is given flat buffers."""
+    with albedo and normal inputs is given flat buffers (and, for one that takes normals in the
+    camera's frame, the identity as the camera's rotation)."""
     side = 64
     aux = (np.full((side, side, 3), 0.5, np.float32), np.tile(np.float32([0, 0, 1]), (side, side, 1))) \
         if denoiser.needs_aovs else (None, None)
-    denoiser.denoise_array(np.full((side, side, 3), 0.5, np.float32), *aux)
+    camera = np.eye(3, dtype=np.float32) if denoiser.needs_aovs else None
+    denoiser.denoise_array(np.full((side, side, 3), 0.5, np.float32), *aux, to_camera=camera)
 
 
 def write_results(out: Path, rows: dict[str, Any], images: dict[str, dict[str, np.ndarray]],

@@ -16,4 +16,7 @@ def test_a_model_with_albedo_and_normal_inputs_is_warmed_up_with_buffers(tmp_pat
                                                                              aux_inputs=True)))
     assert aux.needs_aovs
     warm_up(aux)
+    camera = Denoiser(write_tiny_checkpoint(tmp_path / "camera.ckpt", ModelConfig(
+        layers=2, growth=4, init_features=8, aux_inputs=True, aux_normals="camera")))
+    warm_up(camera)  # it needs the camera's rotation too ("takes normals in the camera's frame")
     warm_up(Denoiser(write_tiny_checkpoint(tmp_path / "rgb.ckpt")))
