@@ -84,13 +84,11 @@ def _preset_overrides(name: str) -> tuple[str, dict[str, int]] | None:
         return None
     overrides: dict[str, int] = {}
     for item in filter(None, rest.split(":")):
-        key, sep, value = item.partition("=")
+        key, _, value = item.partition("=")
         try:
             overrides[key] = int(value)
-        except ValueError:
+        except ValueError:  # no "=", or not an integer after it
             raise ConfigError(f"{name!r}: an override is FIELD=INTEGER, got {item!r}") from None
-        if not sep:
-            raise ConfigError(f"{name!r}: an override is FIELD=INTEGER, got {item!r}")
     return base, overrides
 
 
@@ -286,7 +284,8 @@ def main() -> None:
     p.add_argument("--sizes", type=size_list, default=list(SIZES))
     p.add_argument("--models", default="fast,balanced,high",
                    help="registry names, checkpoint files, expert specs A+B or architecture presets (random "
-                        "weights; PRESET:FIELD=INT[:FIELD=INT] overrides fields); NAME@PRECISION runs that model in that float format only")
+                        "weights; PRESET:FIELD=INT[:FIELD=INT] overrides fields); NAME@PRECISION runs that "
+                        "model in that float format only")
     p.add_argument("--spp", default=",".join(map(str, SPPS)),
                    help="comma-separated spp of the calls ('unknown': no spp and no variance)")
     p.add_argument("--precisions", default="auto",
@@ -303,6 +302,8 @@ def main() -> None:
         return
     if args.processes < 1 or args.repeat < 1:
         raise SystemExit("inference: --processes and --repeat must be at least 1")
+    if args.out.is_dir() or not args.out.parent.is_dir():
+        raise SystemExit(f"inference: --out {args.out}: give a file in an existing folder")
     precisions = args.precisions.split(",")
     spps: list[int | str] = [s if s == "unknown" else int(s) for s in args.spp.split(",")]
     if not set(precisions) <= set(PRECISIONS):

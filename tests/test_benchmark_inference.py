@@ -48,6 +48,10 @@ def test_out_names_the_json_written(tmp_path: Path, monkeypatch) -> None:
     inference.main()
     assert json.loads(out.read_text())["models"] and "unet-s:kernel=5" in out.read_text()
     assert (inference.RESULTS.read_bytes() if inference.RESULTS.exists() else None) == before
+    for bad in (tmp_path, tmp_path / "no" / "such.json"):  # refused before anything is measured
+        monkeypatch.setattr(sys, "argv", ["inference", "--quick", "--out", str(bad)])
+        with pytest.raises(SystemExit, match="give a file in an existing folder"):
+            inference.main()
 
 
 def test_macs_count_only_the_networks_that_run_at_the_spp(tmp_path: Path) -> None:
