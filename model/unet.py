@@ -242,9 +242,16 @@ def kernel_offsets(size: int) -> list[tuple[int, int]]:
 
 def _edge_padded(rgb: torch.Tensor, r: int, y0: int, y1: int) -> torch.Tensor:
     """Rows ``y0 - r`` .. ``y1 + r`` and columns ``-r`` .. ``W + r`` of an NxCxHxW ``rgb``, pixels beyond
-    its edges repeating the edge's (any r: a 1x1 image too): the window the filters read."""
-    h, w = rgb.shape[-2:]
-    return rgb[..., torch.arange(y0 - r, y1 + r).clamp(0, h - 1), :][..., torch.arange(-r, w + r).clamp(0, w - 1)]
+    its edges repeating the edge's (any r: a 1x1 image too): the window the filters read, as a
+    contiguous NCHW tensor. The rows are sliced (clamped by an index only at the image's top and
+    bottom) and the columns padded by replication: two advanced indexings of a channels_last
+    image cost 4x the time."""
+    h = rgb.shape[-2]
+    if y0 - r >= 0 and y1 + r <= h:
+        rows = rgb[:, :, y0 - r:y1 + r]
+    else:
+        rows = rgb.index_select(2, torch.arange(y0 - r, y1 + r).clamp(0, h - 1))
+    return F.pad(rows.contiguous(), (r, r, 0, 0), mode="replicate")
 
 
 def apply_kernel(rgb: torch.Tensor, coefficients: torch.Tensor, size: int) -> torch.Tensor:
@@ -286,18 +293,6 @@ class _KernelFilter(torch.autograd.Function):
         return None, out, None
 
 
-def _band_rows(rgb: torch.Tensor, r: int, y0: int, y1: int) -> torch.Tensor:
-    """:func:`_edge_padded`'s window of rows ``y0`` .. ``y1`` as a contiguous NCHW tensor: the rows
-    sliced (clamped by an index only at the image's top and bottom), the columns padded by
-    replication, where two advanced indexings of a channels_last image cost 4x the time."""
-    h = rgb.shape[-2]
-    if y0 - r >= 0 and y1 + r <= h:
-        rows = rgb[:, :, y0 - r:y1 + r]
-    else:
-        rows = rgb.index_select(2, torch.arange(y0 - r, y1 + r).clamp(0, h - 1))
-    return F.pad(rows.contiguous(), (r, r, 0, 0), mode="replicate")
-
-
 def _band_coefficients(coefficients: torch.Tensor, y0: int, y1: int, width: int, scale: int,
                        taps: int) -> torch.Tensor:
     """Rows ``y0`` .. ``y1`` of the filter's ``taps`` coefficient planes at full resolution, float32:
@@ -327,7 +322,7 @@ def add_kernel_(out: torch.Tensor, rgb: torch.Tensor, coefficients: torch.Tensor
     rows += rows % scale  # bands start on the coefficients' grid
     for y0 in range(0, h, rows):
         y1 = min(h, y0 + rows)
-        padded = _band_rows(rgb, r, y0, y1)
+        padded = _edge_padded(rgb, r, y0, y1)
         a = _band_coefficients(coefficients, y0, y1, w, scale, len(offsets))
         total = torch.zeros(n, c, y1 - y0, w)
         for j, (dy, dx) in enumerate(offsets):
